@@ -1,0 +1,266 @@
+"""Runge–Kutta–Munthe-Kaas (RKMK) solvers that plug into diffrax.
+
+diffrax integrates in a vector space; rotations integrated there drift off
+SO(3). An RKMK method (Munthe-Kaas 1998; Iserles, Munthe-Kaas, Nørsett & Zanna,
+Acta Numerica 2000, sec. 4) writes each group-valued part of the state as
+y(t) = y0 . exp(sigma(t)) over one step, integrates the algebra coordinates
+sigma with an ordinary Runge–Kutta tableau, using
+
+    sigma' = dexp^{-1}_sigma( v(t, y0 . exp(sigma)) ),      sigma(t0) = 0,
+
+and maps back with the exponential. Every stage and every step is an exact group
+element, so ``R^T R = I`` holds to round-off however long the run. With the
+exact dexp^{-1} (closed form on SO(3) and SE(2)) the method keeps the order of
+its tableau.
+
+How each part of the state moves is given by a pytree of
+``nhjax.lie.AbstractSpace`` objects carried by ``LieODETerm`` (``Euclidean``
+parts are plain RK). Dense output (``SaveAt(ts=...)``, events) is computed in
+sigma and retracted, so interpolated states are on the group too.
+
+Solvers:
+
+* ``RKMK45``: Dormand–Prince 5(4) tableau (Shampine's coefficients, FSAL),
+  adaptive (works with ``diffrax.PIDController``), 4th-order dense output.
+* ``RKMK4``: the classical 4th-order tableau, fixed step (``ConstantStepSize``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from diffrax import AbstractLocalInterpolation, AbstractTerm
+
+from ..lie.spaces import Euclidean, is_space
+
+__all__ = ["LieODETerm", "RKMK4", "RKMK45"]
+
+
+class LieODETerm(AbstractTerm):
+    """An ODE term whose state has group-valued parts.
+
+    ``vector_field(t, y, args)`` returns, for each part of y, its velocity as
+    described by the matching entry of ``spaces`` (a pytree prefix of y made of
+    ``nhjax.lie`` spaces; ``Euclidean()`` for ordinary parts).
+    """
+
+    vector_field: Callable
+    spaces: Any = Euclidean()
+
+    def vf(self, t, y, args):
+        return self.vector_field(t, y, args)
+
+    def contr(self, t0, t1, **kwargs):
+        return t1 - t0
+
+    def prod(self, vf, control):
+        return jtu.tree_map(lambda v: control * v, vf)
+
+
+def _spaces_of(terms) -> Any:
+    # diffrax wraps terms (e.g. to flip the direction of time); look through wrappers.
+    while not hasattr(terms, "spaces") and hasattr(terms, "term"):
+        terms = terms.term
+    return getattr(terms, "spaces", Euclidean())
+
+
+def _map(fn, spaces, *trees):
+    return jtu.tree_map(fn, spaces, *trees, is_leaf=is_space)
+
+
+def _lincomb(coeffs, ks, h):
+    """h * sum_j coeffs[j] * ks[j] over pytrees (skipping exact zeros)."""
+    terms = [(float(c), k) for c, k in zip(coeffs, ks) if float(c) != 0.0]
+
+    def comb(*leaves):
+        out = terms[0][0] * leaves[0]
+        for (c, _), leaf in zip(terms[1:], leaves[1:]):
+            out = out + c * leaf
+        return h * out
+
+    return jtu.tree_map(comb, *[k for _, k in terms])
+
+
+class LieInterpolation(AbstractLocalInterpolation):
+    """Dense output y(t) = y0 . exp(sigma(t)) with sigma a polynomial in scaled time."""
+
+    t0: Any
+    t1: Any
+    y0: Any
+    coeffs: Any  # pytree shaped like sigma, each leaf with a leading polynomial axis
+    spaces: Any
+
+    def evaluate(self, t0, t1=None, left=True):
+        del left
+        if t1 is not None:
+            return jtu.tree_map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
+        s = (t0 - self.t0) / (self.t1 - self.t0)
+        sigma = jtu.tree_map(lambda c: jnp.tensordot(s ** jnp.arange(c.shape[0] - 1, -1, -1), c, axes=1), self.coeffs)
+        return _map(lambda sp, y, sg: sp.retract(y, sg), self.spaces, self.y0, sigma)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Tableau:
+    c: np.ndarray
+    a: tuple
+    b: np.ndarray
+    b_err: np.ndarray | None
+    c_mid: np.ndarray | None
+    order: int
+    fsal: bool
+
+
+# Dormand–Prince 5(4), Shampine's form with FSAL (Hairer, Nørsett & Wanner I, Table 5.2),
+# and Shampine's mid-point coefficients for the 4th-order continuous extension.
+_DOPRI5 = _Tableau(
+    c=np.array([0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0]),
+    a=(
+        (),
+        (1 / 5,),
+        (3 / 40, 9 / 40),
+        (44 / 45, -56 / 15, 32 / 9),
+        (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+        (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
+        (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84),
+    ),
+    b=np.array([35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0.0]),
+    b_err=np.array(
+        [
+            35 / 384 - 5179 / 57600,
+            0.0,
+            500 / 1113 - 7571 / 16695,
+            125 / 192 - 393 / 640,
+            -2187 / 6784 + 92097 / 339200,
+            11 / 84 - 187 / 2100,
+            -1 / 40,
+        ]
+    ),
+    c_mid=np.array(
+        [
+            6025192743 / 30085553152 / 2,
+            0.0,
+            51252292925 / 65400821598 / 2,
+            -2691868925 / 45128329728 / 2,
+            187940372067 / 1594534317056 / 2,
+            -1776094331 / 19743644256 / 2,
+            11237099 / 235043384 / 2,
+        ]
+    ),
+    order=5,
+    fsal=True,
+)
+
+_RK4 = _Tableau(
+    c=np.array([0.0, 0.5, 0.5, 1.0]),
+    a=((), (0.5,), (0.0, 0.5), (0.0, 0.0, 1.0)),
+    b=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+    b_err=None,
+    c_mid=None,
+    order=4,
+    fsal=False,
+)
+
+
+class _AbstractRKMK(diffrax.AbstractSolver):
+    term_structure: ClassVar = AbstractTerm
+    interpolation_cls: ClassVar = LieInterpolation
+    tableau: ClassVar[_Tableau]
+
+    def order(self, terms):
+        return self.tableau.order
+
+    def init(self, terms, t0, t1, y0, args):
+        if self.tableau.fsal:
+            return terms.vf(t0, y0, args)
+        return None
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        tab = self.tableau
+        spaces = _spaces_of(terms)
+        h = t1 - t0
+        if tab.fsal:
+            f0 = jax.lax.cond(
+                made_jump, lambda: terms.vf(t0, y0, args), lambda: solver_state
+            )
+        else:
+            f0 = terms.vf(t0, y0, args)
+        ks = [f0]  # k_1 = dexpinv_0(f0) = f0
+        f_last = f0
+        sigma_last = None
+        for ci, ai in zip(tab.c[1:], tab.a[1:]):
+            sigma_i = _lincomb(ai, ks, h)
+            y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
+            f_last = terms.vf(t0 + ci * h, y_i, args)
+            ks.append(_map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_last))
+            sigma_last = sigma_i
+        if tab.fsal:
+            # Last stage sits at t1 with a_last == b: its sigma is the step's sigma.
+            sigma = sigma_last
+            f1 = f_last
+            k_end = ks[-1]
+        else:
+            sigma = _lincomb(tab.b, ks, h)
+            f1 = None
+        y1 = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma)
+
+        if tab.b_err is not None:
+            dsig = _lincomb(tab.b_err, ks, h)
+            y_error = _map(lambda sp, y, s: sp.ambient(y, s), spaces, y0, dsig)
+        else:
+            y_error = None
+
+        if tab.c_mid is not None:
+            sig_mid = _lincomb(tab.c_mid, ks, h)
+            coeffs = jtu.tree_map(
+                lambda s, m, k0, k1: _quartic(s, m, h * k0, h * k1),
+                sigma, sig_mid, ks[0], k_end,
+            )
+        else:
+            f_end = terms.vf(t1, y1, args)
+            k_end = _map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma, f_end)
+            coeffs = jtu.tree_map(
+                lambda s, k0, k1: _cubic(s, h * k0, h * k1), sigma, ks[0], k_end
+            )
+        dense_info = dict(y0=y0, coeffs=coeffs, spaces=spaces)
+        return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
+
+
+def _quartic(s1, smid, f0, f1):
+    """Quartic in scaled time through 0, smid (at 1/2), s1 with end slopes f0, f1."""
+    a = 2 * (f1 - f0) - 8 * s1 + 16 * smid
+    b = 5 * f0 - 3 * f1 + 14 * s1 - 32 * smid
+    c = f1 - 4 * f0 - 5 * s1 + 16 * smid
+    return jnp.stack([a, b, c, f0, jnp.zeros_like(s1)])
+
+
+def _cubic(s1, f0, f1):
+    """Cubic Hermite in scaled time through 0 and s1 with end slopes f0, f1."""
+    a = f0 + f1 - 2 * s1
+    b = -2 * f0 - f1 + 3 * s1
+    return jnp.stack([a, b, f0, jnp.zeros_like(s1)])
+
+
+class RKMK45(_AbstractRKMK, diffrax.AbstractAdaptiveSolver):
+    """Adaptive Munthe-Kaas method on the Dormand–Prince 5(4) tableau (order 5).
+
+    Use with ``diffrax.PIDController``; the error estimate is taken in the
+    algebra and mapped to the state's ambient coordinates at the step start.
+    """
+
+    tableau: ClassVar[_Tableau] = _DOPRI5
+
+
+class RKMK4(_AbstractRKMK):
+    """Classical 4th-order Munthe-Kaas method; fixed steps (``ConstantStepSize``)."""
+
+    tableau: ClassVar[_Tableau] = _RK4
