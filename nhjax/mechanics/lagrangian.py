@@ -1,0 +1,250 @@
+"""Constrained Lagrangian systems with equations of motion derived by autodiff.
+
+Given, in generalized coordinates q (n of them),
+
+* kinetic energy T(q, q') (quadratic in q'), potential V(q),
+* velocity constraints  c(t, q, q') = A(t, q) q' + a(t, q) = 0   (Pfaffian;
+  nonholonomic, or momentum constraints),
+* position constraints  phi(t, q) = 0   (holonomic; enforced at acceleration level),
+* generalized forces    F(t, q, q', u),
+
+the Lagrange–d'Alembert equations are
+
+    M(q) q'' = dL/dq - (d/dq dT/dq') q' + F + A_all^T lam,
+    A_all q'' + b = 0,
+
+with M = d^2 T / dq'^2, A_all the Jacobian of all velocity-level constraints
+(c, and dphi/dt = phi_q q' + phi_t) with respect to q', and b their
+acceleration-level remainder. M, the Coriolis/centrifugal terms, A_all and b all
+come from jax (Hessian, jvp); q'' and the multipliers lam come from the KKT
+system [[M, A^T], [A, 0]] (q'', -lam) = (rhs, -b). Optional Baumgarte
+stabilization replaces ``A q'' + b = 0`` by ``d/dt c + 2 alpha c + beta^2 phi = 0``.
+
+The state is the flat vector x = (q, q').
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+
+from .system import AbstractSystem
+
+__all__ = ["ConstrainedLagrangian", "Lagrangian"]
+
+
+class ConstrainedLagrangian(AbstractSystem):
+    """Abstract constrained Lagrangian system; subclasses define the energies.
+
+    Override ``kinetic_energy(q, qd)`` and any of ``potential_energy(q)``,
+    ``velocity_constraints(t, q, qd)`` (affine in qd), ``position_constraints(t, q)``,
+    ``generalized_force(t, q, qd, u)``. Set ``n`` (number of coordinates).
+    """
+
+    n: eqx.AbstractVar[int]
+
+    # ----------------------------------------------------------- to override
+    def kinetic_energy(self, q, qd):
+        raise NotImplementedError
+
+    def potential_energy(self, q):
+        return jnp.zeros((), dtype=q.dtype)
+
+    def velocity_constraints(self, t, q, qd):
+        return jnp.zeros((0,), dtype=q.dtype)
+
+    def position_constraints(self, t, q):
+        return jnp.zeros((0,), dtype=q.dtype)
+
+    def generalized_force(self, t, q, qd, u):
+        return jnp.zeros_like(q)
+
+    # Baumgarte gains (alpha, beta); (0, 0) means exact index reduction.
+    baumgarte: tuple[float, float] = eqx.field(default=(0.0, 0.0), static=True)
+
+    # ------------------------------------------------------------- derived
+    def split(self, x):
+        return x[: self.n], x[self.n :]
+
+    def lagrangian(self, q, qd):
+        return self.kinetic_energy(q, qd) - self.potential_energy(q)
+
+    def momentum(self, q, qd):
+        """p = dT/dq'."""
+        return jax.grad(self.kinetic_energy, argnums=1)(q, qd)
+
+    def mass_matrix(self, q):
+        """M(q) = d^2 T / dq'^2 (T is quadratic in q', so any q' gives the same M)."""
+        return jax.jacfwd(self.momentum, argnums=1)(q, jnp.zeros_like(q))
+
+    def _all_velocity_constraints(self, t, q, qd):
+        c = self.velocity_constraints(t, q, qd)
+        phi_dot = jax.jvp(
+            lambda tt, qq: self.position_constraints(tt, qq),
+            (jnp.asarray(t, q.dtype), q),
+            (jnp.ones((), q.dtype), qd),
+        )[1]
+        return jnp.concatenate([jnp.atleast_1d(c), jnp.atleast_1d(phi_dot)])
+
+    def constraint_jacobian(self, t, q):
+        """A_all(t, q): Jacobian of all velocity-level constraints w.r.t. q'."""
+        return jax.jacfwd(lambda v: self._all_velocity_constraints(t, q, v))(
+            jnp.zeros_like(q)
+        )
+
+    def dynamics_terms(self, t, q, qd, u):
+        """(M, rhs, A, b): the pieces of the KKT system at (t, q, q')."""
+        M = self.mass_matrix(q)
+        dLdq = jax.grad(self.lagrangian, argnums=0)(q, qd)
+        # (d/dq dT/dq') q' by a forward-mode directional derivative
+        dpdq_qd = jax.jvp(lambda qq: self.momentum(qq, qd), (q,), (qd,))[1]
+        if u is None:
+            u = jnp.zeros((self.control_dim,), q.dtype)
+        rhs = dLdq - dpdq_qd + self.generalized_force(t, q, qd, u)
+        A = self.constraint_jacobian(t, q)
+        # b = d/dt c at fixed q'' = 0: derivative of c along (t, q) -> (1, q')
+        tt = jnp.asarray(t, q.dtype)
+        b = jax.jvp(
+            lambda s, qq: self._all_velocity_constraints(s, qq, qd),
+            (tt, q),
+            (jnp.ones((), q.dtype), qd),
+        )[1]
+        alpha, beta = self.baumgarte
+        if alpha or beta:
+            c = self._all_velocity_constraints(t, q, qd)
+            phi = self.position_constraints(t, q)
+            pad = jnp.zeros(c.shape[0] - jnp.atleast_1d(phi).shape[0], q.dtype)
+            b = b + 2 * alpha * c + beta**2 * jnp.concatenate([pad, jnp.atleast_1d(phi)])
+        return M, rhs, A, b
+
+    def accelerations(self, t, q, qd, u=None):
+        """(q'', lam): accelerations and constraint multipliers (force A^T lam)."""
+        M, rhs, A, b = self.dynamics_terms(t, q, qd, u)
+        m = A.shape[0]
+        if m == 0:
+            return jnp.linalg.solve(M, rhs), jnp.zeros((0,), q.dtype)
+        K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), q.dtype)]])
+        sol = jnp.linalg.solve(K, jnp.concatenate([rhs, -b]))
+        return sol[: self.n], -sol[self.n :]
+
+    def inverse_dynamics(self, t, q, qd, qdd, input_matrix):
+        """Inputs u and multipliers lam that produce q'' (least squares).
+
+        Solves  M q'' - rhs(u=0) = B u + A^T lam  for (u, lam) where B is
+        ``input_matrix`` (n x k: generalized force per unit input) and checks
+        nothing: the caller asserts that q'' is consistent with the constraints.
+        """
+        M, rhs, A, _ = self.dynamics_terms(t, q, qd, None)
+        lhs = M @ qdd - rhs
+        G = jnp.concatenate([input_matrix, A.T], axis=1)
+        sol = jnp.linalg.lstsq(G, lhs)[0]
+        k = input_matrix.shape[1]
+        return sol[:k], sol[k:]
+
+    # --------------------------------------------------- AbstractSystem API
+    def vector_field(self, t, x, u):
+        q, qd = self.split(x)
+        qdd, _ = self.accelerations(t, q, qd, u)
+        return jnp.concatenate([qd, qdd])
+
+    def constraints(self, t, x):
+        q, qd = self.split(x)
+        out = {}
+        c = jnp.atleast_1d(self.velocity_constraints(t, q, qd))
+        if c.shape[0]:
+            out["velocity"] = c
+        phi = jnp.atleast_1d(self.position_constraints(t, q))
+        if phi.shape[0]:
+            out["position"] = phi
+            out["position_rate"] = self._all_velocity_constraints(t, q, qd)[c.shape[0] :]
+        return out
+
+    def energy(self, x):
+        q, qd = self.split(x)
+        return self.kinetic_energy(q, qd) + self.potential_energy(q)
+
+    def power(self, t, x, u):
+        q, qd = self.split(x)
+        return jnp.dot(self.generalized_force(t, q, qd, u), qd)
+
+    def project(self, t, x):
+        """Nearest consistent state: Newton on phi(q) = 0 (optimistix), then the
+        kinetic-metric projection of q' onto A_all q' + a = 0."""
+        q, qd = self.split(x)
+        phi0 = jnp.atleast_1d(self.position_constraints(t, q))
+        if phi0.shape[0]:
+            # Minimum-norm Newton (Gauss–Newton on an underdetermined system).
+            sol = optx.least_squares(
+                lambda qq, _: self.position_constraints(t, qq),
+                optx.GaussNewton(rtol=1e-14, atol=1e-14),
+                q,
+                max_steps=50,
+            )
+            q = sol.value
+        A = self.constraint_jacobian(t, q)
+        if A.shape[0]:
+            a = self._all_velocity_constraints(t, q, jnp.zeros_like(qd))
+            M = self.mass_matrix(q)
+            MinvAT = jnp.linalg.solve(M, A.T)
+            r = A @ qd + a
+            qd = qd - MinvAT @ jnp.linalg.solve(A @ MinvAT, r)
+        return jnp.concatenate([q, qd])
+
+
+class Lagrangian(ConstrainedLagrangian):
+    """A ConstrainedLagrangian from plain functions (quick user-defined systems).
+
+    ``Lagrangian(n=2, T=lambda q, qd: ..., V=..., velocity_constraints=...,
+    position_constraints=..., force=lambda t, q, qd, u: ..., control_dim=k)``.
+    The functions may close over arrays (then those are constants to jit/grad)
+    or be equinox Modules (then their arrays are traced parameters).
+    """
+
+    n: int = eqx.field(static=True)
+    T: Callable = None
+    V: Callable | None = None
+    vel_c: Callable | None = None
+    pos_c: Callable | None = None
+    force: Callable | None = None
+    n_controls: int = eqx.field(default=0, static=True)
+    baumgarte: tuple[float, float] = eqx.field(default=(0.0, 0.0), static=True)
+
+    def __init__(
+        self,
+        n,
+        T,
+        V=None,
+        velocity_constraints=None,
+        position_constraints=None,
+        force=None,
+        control_dim=0,
+        baumgarte=(0.0, 0.0),
+    ):
+        self.n = int(n)
+        self.T, self.V, self.force = T, V, force
+        self.vel_c, self.pos_c = velocity_constraints, position_constraints
+        self.n_controls = int(control_dim)
+        self.baumgarte = tuple(baumgarte)
+
+    @property
+    def control_dim(self):  # type: ignore[override]
+        return self.n_controls
+
+    def kinetic_energy(self, q, qd):
+        return self.T(q, qd)
+
+    def potential_energy(self, q):
+        return self.V(q) if self.V is not None else jnp.zeros((), q.dtype)
+
+    def velocity_constraints(self, t, q, qd):
+        return self.vel_c(t, q, qd) if self.vel_c is not None else jnp.zeros((0,), q.dtype)
+
+    def position_constraints(self, t, q):
+        return self.pos_c(t, q) if self.pos_c is not None else jnp.zeros((0,), q.dtype)
+
+    def generalized_force(self, t, q, qd, u):
+        return self.force(t, q, qd, u) if self.force is not None else jnp.zeros_like(q)
+

@@ -1,0 +1,64 @@
+"""The system interface that ``nhjax.simulate`` integrates.
+
+A system is an ``equinox.Module`` (so jit, vmap and grad see its parameters)
+with a first-order vector field x' = F(t, x, u) and optional declarations that
+make every simulation self-checking:
+
+* ``constraints(t, x)``: residuals that must stay zero (name -> array);
+* ``invariants(x)``: quantities conserved for *every* admissible control
+  (name -> scalar);
+* ``energy(x)`` and ``power(t, x, u)``: with a control, simulate() integrates
+  the work of the inputs and reports the drift of energy - work;
+* ``guards(x)``: chart guards, positive inside the region where the
+  coordinates are valid; simulate() stops (and by default raises
+  ``ChartSingularityError``) where one crosses zero;
+* ``spaces``: for states with group-valued parts, the ``nhjax.lie`` spaces that
+  tell the Lie-group solvers how each part moves;
+* ``project(t, x)``: map a nearby state onto the constraint manifold.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import equinox as eqx
+
+from ..lie.spaces import Euclidean
+
+__all__ = ["AbstractSystem"]
+
+
+class AbstractSystem(eqx.Module):
+    """Base class of every nhjax system; see the module docstring."""
+
+    # Names of the components of a flat state (used by Trajectory["name"]).
+    state_names: ClassVar[tuple[str, ...]] = ()
+    # Number of control inputs (0: the system takes none).
+    control_dim: ClassVar[int] = 0
+    # Advice shown when a guard of this name trips.
+    guard_hints: ClassVar[dict[str, str]] = {}
+
+    def vector_field(self, t, x, u):
+        raise NotImplementedError
+
+    @property
+    def spaces(self) -> Any:
+        return Euclidean()
+
+    def constraints(self, t, x) -> dict:
+        return {}
+
+    def invariants(self, x) -> dict:
+        return {}
+
+    def guards(self, x) -> dict:
+        return {}
+
+    def energy(self, x):
+        return None
+
+    def power(self, t, x, u):
+        return None
+
+    def project(self, t, x):
+        return x
