@@ -121,9 +121,17 @@ def rot_z(a):
 
 
 def _axis_rotation(a, k):
-    a = jnp.asarray(a)
-    e = jnp.zeros(a.shape + (3,), dtype=jnp.result_type(a, float)).at[..., k].set(1.0)
-    return exp(a[..., None] * e)
+    a = jnp.asarray(a, dtype=jnp.result_type(a, float))
+    c, s = jnp.cos(a), jnp.sin(a)
+    o, z = jnp.ones_like(c), jnp.zeros_like(c)
+    i, j = (k + 1) % 3, (k + 2) % 3
+    # rows of the identity with the (i, j) plane rotated by a
+    M = [[None] * 3 for _ in range(3)]
+    for r in range(3):
+        for col in range(3):
+            M[r][col] = o if (r == col == k) else z
+    M[i][i], M[i][j], M[j][i], M[j][j] = c, -s, s, c
+    return jnp.stack([jnp.stack(row, -1) for row in M], -2)
 
 
 # ---------------------------------------------------------------- quaternions
