@@ -1,0 +1,48 @@
+"""nhjax: geometric and nonholonomic mechanics in JAX.
+
+Simulate constrained mechanical systems (Lagrangians with Pfaffian
+constraints, rigid bodies on Lie groups), differentiate through the
+simulations, and hand them to the optimal-control package ``controls``.
+
+float64 is switched on here, once, for the whole process: every result nhjax
+reports assumes it.
+"""
+
+import jax as _jax
+
+_jax.config.update("jax_enable_x64", True)
+
+from . import lie, mechanics, scenes  # noqa: E402
+from .errors import (  # noqa: E402
+    ChartSingularityError,
+    ConstraintViolationError,
+    IntegrationError,
+    NhjaxError,
+)
+from .integrate import (  # noqa: E402
+    RKMK4,
+    RKMK45,
+    PiecewiseConstant,
+    PiecewiseLinear,
+    Sinusoids,
+    Trajectory,
+    simulate,
+)
+
+__all__ = [
+    "ChartSingularityError",
+    "ConstraintViolationError",
+    "IntegrationError",
+    "NhjaxError",
+    "PiecewiseConstant",
+    "PiecewiseLinear",
+    "RKMK4",
+    "RKMK45",
+    "Sinusoids",
+    "Trajectory",
+    "lie",
+    "mechanics",
+    "scenes",
+    "simulate",
+]
+__version__ = "0.1.0"

@@ -1,0 +1,516 @@
+"""``nhjax.simulate``: integrate any nhjax system with diffrax and report its accuracy.
+
+One call runs one jitted ``diffrax.diffeqsolve`` and returns a ``Trajectory``
+that carries, next to the states, the evidence of how good they are: accepted
+and rejected steps, the largest constraint residual seen, the drift of every
+invariant the system declares, and (under a control) the drift of energy minus
+the work of the inputs.
+
+Bad input and failures raise, with the time they happened:
+
+* an initial state off its constraint manifold -> ``ConstraintViolationError``
+  (or pass ``project=True``);
+* a chart guard crossing zero -> ``ChartSingularityError`` (or
+  ``on_guard="stop"`` to get the trajectory up to the chart's edge);
+* max_steps exhausted, NaN/inf in the vector field -> ``IntegrationError``.
+
+When simulate() is itself traced (inside jit, vmap or grad) these checks
+become ``equinox.error_if`` runtime errors (same wording, without the time).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+import optimistix as optx
+
+from ..errors import ChartSingularityError, ConstraintViolationError, IntegrationError
+from ..lie.spaces import Euclidean, is_space
+from ..mechanics.system import AbstractSystem
+from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
+
+__all__ = ["Trajectory", "simulate"]
+
+
+class Trajectory(eqx.Module):
+    """States at the saved times, with the diagnostics that qualify them.
+
+    Fields
+    ------
+    ts, xs : saved times and states (xs stacks the state pytree along axis 0).
+    us : the control at the saved times (None without a control).
+    work : work done by the inputs since t0 (None unless tracked).
+    invariants : name -> values at the saved times.
+    invariant_drift : name -> max |I(t) - I(t0)| over the saved times.
+    constraint_drift : name -> max |residual| over the saved times.
+    num_steps, num_accepted_steps, num_rejected_steps : solver statistics.
+    t_final : time the solve ended (t1 unless stopped by a guard).
+    guard : name of the chart guard that stopped the solve ("" if none).
+    """
+
+    ts: jax.Array
+    xs: Any
+    us: Any
+    work: Any
+    invariants: dict
+    invariant_drift: dict
+    constraint_drift: dict
+    num_steps: jax.Array
+    num_accepted_steps: jax.Array
+    num_rejected_steps: jax.Array
+    t_final: jax.Array
+    x_end: Any
+    result: Any
+    event_mask: Any
+    state_names: tuple = eqx.field(static=True, default=())
+    guard: str = eqx.field(static=True, default="")
+
+    def __getitem__(self, name: str):
+        """Component of a flat state by name, e.g. ``traj["theta"]``."""
+        if name not in self.state_names:
+            raise KeyError(f"no state component '{name}'; have {self.state_names}")
+        return self.xs[..., self.state_names.index(name)]
+
+    @property
+    def x_final(self):
+        return jtu.tree_map(lambda a: a[-1], self.xs)
+
+    def summary(self) -> str:
+        """Human-readable diagnostics."""
+        lines = [
+            f"t_final = {float(self.t_final):.6g}   steps: {int(self.num_accepted_steps)} "
+            f"accepted, {int(self.num_rejected_steps)} rejected"
+        ]
+        for k, v in self.constraint_drift.items():
+            lines.append(f"  constraint '{k}': max |residual| = {float(v):.2e}")
+        for k, v in self.invariant_drift.items():
+            lines.append(f"  invariant '{k}': max drift = {float(v):.2e}")
+        if self.guard:
+            lines.append(f"  stopped by chart guard '{self.guard}'")
+        return "\n".join(lines)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Static:
+    track_work: bool
+    guard_names: tuple[str, ...]
+    max_steps: int
+    progress: bool
+    state_names: tuple[str, ...]
+
+
+def _is_traced(*trees) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves(trees))
+
+
+def _all_euclidean(spaces) -> bool:
+    return all(isinstance(s, Euclidean) for s in jtu.tree_leaves(spaces, is_leaf=is_space))
+
+
+def _max_abs(a):
+    a = jnp.asarray(a)
+    return jnp.max(jnp.abs(a)) if a.size else jnp.zeros(())
+
+
+def _vector_field(static: _Static):
+    def vf(t, y, args):
+        system, control = args
+        x = y[0] if static.track_work else y
+        u = None if control is None else control(t, x)
+        dx = system.vector_field(t, x, u)
+        if static.track_work:
+            return dx, system.power(t, x, u)
+        return dx
+
+    return vf
+
+
+@eqx.filter_jit
+def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static):
+    track = static.track_work
+    spaces = system.spaces
+    y0 = (x0, jnp.zeros((), x0.dtype if hasattr(x0, "dtype") else float)) if track else x0
+    if track:
+        spaces = (spaces, Euclidean())
+    term = LieODETerm(_vector_field(static), spaces)
+    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True)])
+
+    event = None
+    if static.guard_names:
+        # One scalar event: the smallest guard. Which guard fired is read off the
+        # final state afterwards (the one closest to zero).
+        def cond(t, y, args, **kwargs):
+            x = y[0] if track else y
+            g = args[0].guards(x)
+            return jnp.min(jnp.stack([g[n] for n in static.guard_names]))
+
+        event = diffrax.Event(
+            cond_fn=cond, root_finder=optx.Bisection(rtol=1e-13, atol=1e-13)
+        )
+    progress_meter = (
+        diffrax.TqdmProgressMeter() if static.progress else diffrax.NoProgressMeter()
+    )
+    sol = diffrax.diffeqsolve(
+        term,
+        solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        args=(system, control),
+        saveat=saveat,
+        stepsize_controller=controller,
+        adjoint=adjoint,
+        event=event,
+        max_steps=static.max_steps,
+        throw=False,
+        progress_meter=progress_meter,
+    )
+    ts_saved = sol.ts[0]
+    ys = sol.ys[0]
+    t_final = sol.ts[1][-1]
+    x_end = sol.ys[1][0][-1] if track else jtu.tree_map(lambda a: a[-1], sol.ys[1])
+    valid = ts_saved <= t_final
+    if track:
+        xs, work = ys
+    else:
+        xs, work = ys, None
+
+    # Diagnostics on the saved points (entries past t_final are masked out).
+    x_safe = jtu.tree_map(
+        lambda a, a0: jnp.where(valid.reshape((-1,) + (1,) * (a.ndim - 1)), a, a0[None]),
+        xs,
+        x0,
+    )
+    invariants = dict(jax.vmap(system.invariants)(x_safe))
+    has_energy = system.energy(x0) is not None
+    if has_energy and (track or control is None):
+        energies = jax.vmap(system.energy)(x_safe)
+        if track:
+            invariants["energy - work"] = energies - jnp.where(valid, work, 0.0)
+        else:
+            invariants["energy"] = energies
+    drift = {k: jnp.max(jnp.abs(v - v[0])) for k, v in invariants.items()}
+    cons = jax.vmap(system.constraints)(ts_saved, x_safe) if system.constraints(t0, x0) else {}
+    constraint_drift = {k: _max_abs(v) for k, v in cons.items()}
+    us = None
+    if control is not None:
+        us = jax.vmap(control)(jnp.where(valid, ts_saved, t0), x_safe)
+    return Trajectory(
+        ts=ts_saved,
+        xs=xs,
+        us=us,
+        work=work,
+        invariants=invariants,
+        invariant_drift=drift,
+        constraint_drift=constraint_drift,
+        num_steps=sol.stats["num_steps"],
+        num_accepted_steps=sol.stats["num_accepted_steps"],
+        num_rejected_steps=sol.stats["num_rejected_steps"],
+        t_final=t_final,
+        x_end=x_end,
+        result=sol.result,
+        event_mask=sol.event_mask,
+        state_names=static.state_names,
+    )
+
+
+def _save_times(saveat, t0, t1):
+    if saveat is None:
+        saveat = 101
+    if isinstance(saveat, (int, np.integer)):
+        if saveat < 2:
+            raise ValueError(f"saveat={saveat}: ask for at least 2 saved times (t0 and t1)")
+        return jnp.linspace(t0, t1, int(saveat))
+    ts = jnp.asarray(saveat, dtype=float)
+    if ts.ndim != 1 or ts.shape[0] == 0:
+        raise ValueError("saveat must be an int (number of equally spaced times) or a 1-D array of times")
+    if not _is_traced(ts, t0, t1):
+        tsn = np.asarray(ts)
+        if np.any(np.diff(tsn) < 0) or tsn[0] < float(t0) - 1e-12 or tsn[-1] > float(t1) + 1e-12:
+            raise ValueError(
+                f"saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]"
+            )
+    return ts
+
+
+@eqx.filter_jit
+def _initial_report(system, control, x0, t0, project):
+    """Everything simulate() checks about x0, in one compiled call.
+
+    Shape errors of the control are raised while tracing (they depend on
+    structure only); the numbers come back as a small pytree.
+    """
+    if control is not None:
+        shape = jnp.shape(control(t0, x0))
+        if shape != (system.control_dim,):
+            raise ValueError(
+                f"control(t, x) returned shape {shape}; {type(system).__name__} has "
+                f"{system.control_dim} inputs"
+            )
+    if project:
+        x0 = system.project(t0, x0)
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jtu.tree_leaves(x0)]))
+    residuals = {k: _max_abs(v) for k, v in system.constraints(t0, x0).items()}
+    return x0, finite, residuals, dict(system.guards(x0))
+
+
+def _check_inputs(system, control, x0, t0, constraint_tol, project):
+    """Validate shapes, finiteness and constraints of x0; returns x0 (maybe projected)."""
+    names = system.state_names
+    if names and hasattr(x0, "shape") and x0.shape != (len(names),):
+        raise ValueError(
+            f"x0 has shape {x0.shape}; {type(system).__name__} expects {len(names)} "
+            f"components {names}"
+        )
+    if control is not None:
+        if system.control_dim == 0:
+            raise ValueError(f"{type(system).__name__} takes no control input")
+        if not callable(control):
+            raise TypeError("control must be callable as control(t, x) -> array of inputs")
+    x0p, finite, residuals, guards = _initial_report(system, control, x0, jnp.asarray(t0, float), project)
+    guard_names = tuple(guards)
+    if _is_traced(x0, system, control):
+        return x0p, guard_names
+    finite, residuals, guards = jax.device_get((finite, residuals, guards))
+    if not finite:
+        raise ValueError("initial state x0 contains NaN or inf")
+    for name, res in residuals.items():
+        if res > constraint_tol:
+            raise ConstraintViolationError(name, float(res), constraint_tol)
+    for name, g in guards.items():
+        if g <= 0:
+            raise ChartSingularityError(
+                name, float(t0), "the initial state is already outside the chart. "
+                + system.guard_hints.get(name, "")
+            )
+    return x0p, guard_names
+
+
+def simulate(
+    system,
+    x0,
+    t1,
+    *,
+    t0=0.0,
+    control=None,
+    saveat=None,
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    dt0=None,
+    max_steps: int = 100_000,
+    stepsize_controller=None,
+    jump_ts=None,
+    adjoint=None,
+    project: bool = False,
+    constraint_tol: float = 1e-8,
+    on_guard: str = "raise",
+    track_work: bool | None = None,
+    progress: bool = False,
+) -> Trajectory:
+    """Integrate ``system`` from ``x0`` at ``t0`` to ``t1``.
+
+    Parameters
+    ----------
+    system : an ``nhjax.mechanics.AbstractSystem`` (a scene, a Lagrangian, ...).
+    x0 : initial state (flat array for most scenes; a pytree with group parts for
+        Lie-group states).
+    control : None, or a callable ``control(t, x) -> u`` with ``system.control_dim``
+        entries. Equinox modules work too, and their arrays are differentiable
+        parameters. A control with a ``breakpoints`` attribute (times where it
+        is not smooth) gets steps placed exactly there.
+    saveat : int (that many equally spaced times, default 101) or 1-D array of times.
+    solver : a diffrax solver; default ``diffrax.Tsit5()`` for vector states and
+        ``nhjax.RKMK45()`` when the state has group-valued parts.
+    rtol, atol : tolerances of the default ``diffrax.PIDController``.
+    dt0 : initial step; required (and the step) for fixed-step solvers.
+    max_steps : budget of solver steps; exhausting it raises ``IntegrationError``.
+    jump_ts : times at which the vector field is not smooth (steps land there).
+    adjoint : diffrax adjoint for reverse-mode gradients (default: recursive
+        checkpointing; ``diffrax.ForwardMode()`` for jvp/jacfwd).
+    project : project x0 onto the constraint manifold instead of rejecting it.
+    constraint_tol : largest constraint residual accepted in x0.
+    on_guard : "raise" (ChartSingularityError) or "stop" (return the trajectory
+        up to where a chart guard crossed zero; ``traj.guard`` names it).
+    track_work : integrate the work of the inputs and report energy - work
+        (default: whenever a control is given and the system defines power()).
+    progress : show a tqdm progress bar over simulated time.
+    """
+    if on_guard not in ("raise", "stop"):
+        raise ValueError("on_guard must be 'raise' or 'stop'")
+    traced = _is_traced(x0, t0, t1, system, control)
+    if not traced and not float(t1) > float(t0):
+        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
+    x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
+    x0, guard_names = _check_inputs(system, control, x0, t0, constraint_tol, project)
+
+    spaces = system.spaces
+    euclid = _all_euclidean(spaces)
+    if solver is None:
+        solver = diffrax.Tsit5() if euclid else RKMK45()
+    elif not euclid and not isinstance(solver, _AbstractRKMK):
+        raise TypeError(
+            f"{type(system).__name__} has group-valued state parts; "
+            f"{type(solver).__name__} would integrate them in ambient coordinates and "
+            "drift off the group. Use nhjax.RKMK45() (adaptive) or nhjax.RKMK4() (fixed step)."
+        )
+    if jump_ts is None and control is not None and hasattr(control, "breakpoints"):
+        jump_ts = control.breakpoints
+    if stepsize_controller is None:
+        if isinstance(solver, diffrax.AbstractAdaptiveSolver):
+            # Tolerances as arrays: changing them does not recompile.
+            stepsize_controller = diffrax.PIDController(
+                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts
+            )
+        else:
+            if dt0 is None:
+                raise ValueError(
+                    f"{type(solver).__name__} is a fixed-step solver: pass dt0 (the step)"
+                )
+            stepsize_controller = diffrax.ConstantStepSize()
+    if adjoint is None:
+        adjoint = diffrax.RecursiveCheckpointAdjoint()
+
+    if track_work is None:
+        track_work = control is not None and _defines_power(system)
+    static = _Static(
+        track_work=bool(track_work),
+        guard_names=guard_names,
+        max_steps=int(max_steps),
+        progress=bool(progress),
+        state_names=tuple(system.state_names),
+    )
+    ts = _save_times(saveat, t0, t1)
+    if dt0 is not None:
+        dt0 = jnp.asarray(dt0, float)
+    traj = _solve(
+        system, control, x0, jnp.asarray(t0, float), jnp.asarray(t1, float), ts,
+        solver, stepsize_controller, adjoint, dt0, static,
+    )
+    if traced:
+        return _runtime_checks(traj, static, on_guard)
+    return _eager_checks(traj, system, control, static, on_guard)
+
+
+def _defines_power(system) -> bool:
+    return type(system).power is not AbstractSystem.power
+
+
+_GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"
+
+
+def _runtime_checks(traj, static, on_guard):
+    """Checks for a traced simulate(): attached to the outputs users read (ts, xs, x_end)
+    so that jit cannot drop them."""
+    ok = diffrax.RESULTS.successful
+    ev = diffrax.RESULTS.event_occurred
+    bad = (traj.result != ok) & (traj.result != ev)
+    out = (traj.ts, traj.xs, traj.x_end)
+    out = eqx.error_if(
+        out, bad, "nhjax.simulate: the solve failed (max_steps exhausted, or NaN/inf in the vector field)"
+    )
+    if on_guard == "raise" and static.guard_names:
+        out = eqx.error_if(out, traj.result == ev, _GUARD_MSG)
+    return eqx.tree_at(lambda t: (t.ts, t.xs, t.x_end), traj, out)
+
+
+def _truncate(traj, t_end, system=None, control=None):
+    """Keep the saved points up to t_end and append the state at t_end itself."""
+    ts = np.asarray(traj.ts)
+    n = int(np.searchsorted(ts, t_end, side="right"))
+    append = system is not None and (n == 0 or ts[n - 1] < t_end)
+
+    def cut(a, end=None):
+        if a is None:
+            return None
+        a = a[:n]
+        return jnp.concatenate([a, jnp.asarray(end)[None]]) if append else a
+
+    x_end = traj.x_end
+    xs = jtu.tree_map(cut, traj.xs, x_end)
+    us = None
+    if traj.us is not None:
+        u_end = control(traj.t_final, x_end) if append else None
+        us = cut(traj.us, u_end)
+    invariants = {}
+    for k, v in traj.invariants.items():
+        end = None
+        if append:
+            end = system.energy(x_end) if k == "energy" else (
+                np.nan if k == "energy - work" else system.invariants(x_end)[k])
+        invariants[k] = cut(v, end)
+    work = cut(traj.work, np.nan) if traj.work is not None else None
+    return dataclasses.replace(
+        traj, ts=cut(traj.ts, t_end), xs=xs, us=us, work=work, invariants=invariants
+    )
+
+
+def _eager_checks(traj, system, control, static, on_guard):
+    result, t_final, leaves = jax.device_get((traj.result, traj.t_final, jtu.tree_leaves(traj.xs)))
+    t_final = float(t_final)
+    if result == diffrax.RESULTS.event_occurred:
+        traj = _truncate(traj, t_final, system, control)
+        g = system.guards(traj.x_end)
+        name = min(static.guard_names, key=lambda n: abs(float(g[n])))
+        traj = dataclasses.replace(traj, guard=name)
+        if on_guard == "raise":
+            raise ChartSingularityError(
+                name, t_final, system.guard_hints.get(name, ""), trajectory=traj
+            )
+        return traj
+    if result != diffrax.RESULTS.successful:
+        traj = _truncate(traj, t_final, system, control)
+        x_end = traj.x_end
+        detail = _diagnose_failure(system, control, t_final, x_end, traj)
+        if result == diffrax.RESULTS.max_steps_reached:
+            reason = f"max_steps={static.max_steps} exhausted"
+        else:
+            reason = str(result.error_message if hasattr(result, "error_message") else result)
+        raise IntegrationError(reason, t_final, detail, trajectory=traj)
+    # Fixed-step solvers never reject: look for the first non-finite saved state.
+    finite = np.all(np.stack([np.isfinite(a).reshape(a.shape[0], -1).all(1) for a in leaves]), axis=0)
+    if not finite.all():
+        i = int(np.argmin(finite))
+        t_bad = float(traj.ts[i])
+        t_ok = float(traj.ts[i - 1]) if i > 0 else float(traj.ts[0])
+        raise IntegrationError(
+            "state became NaN/inf", t_bad, f"it was finite at t = {t_ok:.10g}",
+            trajectory=_truncate(traj, t_ok),
+        )
+    return traj
+
+
+def _diagnose_failure(system, control, t, x, traj) -> str:
+    steps = (
+        f"{int(traj.num_accepted_steps)} steps accepted, "
+        f"{int(traj.num_rejected_steps)} rejected"
+    )
+    u = None if control is None else control(t, x)
+    f = system.vector_field(t, x, u)
+    if not all(np.all(np.isfinite(np.asarray(a))) for a in jtu.tree_leaves(f)):
+        return f"the vector field is NaN/inf at this state ({steps})"
+    # Probe a little ahead along the flow: a NaN there makes every step get rejected.
+    span = max(abs(float(traj.ts[-1]) - float(traj.ts[0])), 1.0)
+    for h in span * 10.0 ** np.arange(-12, -2):
+        xh = jtu.tree_map(lambda a, da: a + h * da, x, f)
+        uh = None if control is None else control(t + h, xh)
+        fh = system.vector_field(t + h, xh, uh)
+        if not all(np.all(np.isfinite(np.asarray(a))) for a in jtu.tree_leaves(fh)):
+            return (
+                f"the vector field turns NaN/inf within dt = {h:.1e} after this time, so the "
+                f"step size collapsed ({steps}); check the model's domain (a singular chart?)"
+            )
+    if int(traj.num_rejected_steps) > int(traj.num_accepted_steps):
+        return (
+            f"{steps}; the step size kept shrinking: the problem may be stiff or singular "
+            "here (try looser tolerances or an implicit solver)"
+        )
+    return f"{steps}; the horizon needs more steps at this tolerance: raise max_steps"
