@@ -1,0 +1,519 @@
+r"""Iwai's falling cat: two identical axisymmetric cylinders, twist-free joint.
+
+Seed 000 (T. Iwai, *Geometric mechanics of many-body systems*, J. Comput. Appl.
+Math. 140 (2002) 403–422), sections 6–7.
+
+Model
+-----
+Each cylinder has mass ``m``, transverse moment ``I1`` and axial moment
+``I2 = lam I1`` about its centre of mass; the joint sits on the symmetry axis
+at distance ``l`` from each centre of mass. Only three numbers enter the
+dynamics:
+
+    I1 [kg m^2],   lam = I2 / I1 [-],   B = m l^2 / I1 [-].
+
+For solid cylinders of length L and radius r jointed end to end (l = L/2):
+I1 = m (3 r^2 + L^2)/12, lam = 6 r^2 / (3 r^2 + L^2), B = 3 L^2 / (3 r^2 + L^2)
+(``FallingCat.from_dimensions``).
+
+Coordinates (6.6): the attitudes of the cylinders are
+
+    g1 = exp(psi e2^) exp(-theta e1^) exp(chi e2^),
+    g2 = exp(psi e2^) exp(+theta e1^) exp(chi e2^),
+
+theta is half the bend angle (0: straight along e2, pi/2: folded back), chi the
+common twist of both cylinders about their own axes, psi the overall rotation
+about e2 (the long axis of the straight cat). With the centre of mass at the
+origin, the centres are r1 = -l (a1 + a2)/2 = -r2 (a_i = g_i e2) and the joint
+is at r1 + l a1. On these configurations the total angular momentum points
+along e2 and equals 2 I1 D (psi' + f chi'), so zero angular momentum is the
+connection (6.7):
+
+    psi' + f(theta) chi' = 0,   D = sin^2 theta + lam cos^2 theta,  f = lam cos theta / D.
+
+Lagrangian (7.9) and torque-driven equations (7.14)-(7.15) (s = sin theta,
+c = cos theta; inputs u1 on theta, u2 on chi, generalized forces u1 dtheta + u2 dchi):
+
+    2 I1 (1 + B s^2) theta'' = -2 I1 B s c theta'^2 + 2 I1 lam^2 s c / D^2 chi'^2 + u1
+    2 I1 lam s^2 / D chi''   = -4 I1 lam^2 s c / D^2 theta' chi' + u2
+    psi' = -f(theta) chi'
+
+The signs above were re-derived from (7.9) (the extraction of the seed garbled
+them); ``FallingCat(equations="engine")`` derives the same equations by
+autodiff from the two-rigid-body kinetic energy and the angular-momentum
+constraint, and the tests check that both agree.
+
+Curvature (7.13): F12 = df/dtheta = -lam s (1 + (1 - lam) c^2) / D^2.
+Holonomy: a closed shape loop C turns psi by -oint_C f dchi; a loop at fixed
+theta with chi advancing 2 pi gives exactly -2 pi f(theta).
+
+State of ``FallingCat``: x = (theta, chi, psi, theta', chi') [rad, rad/s];
+psi' is not a state (it is -f chi'). Inputs u = (u1, u2) [N m].
+State of ``FallingCatKinematic`` (velocity control (7.1)): x = (theta, chi, psi),
+u = (theta', chi') [rad/s].
+
+Chart: (theta, chi, psi) is singular where sin(theta) = 0 (the straight cat:
+chi and psi both turn about the same axis; the twist inertia 2 I1 lam s^2/D
+vanishes). Simulations stop there with ``ChartSingularityError``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..lie import SO3Body, Euclidean, so3
+from ..mechanics import AbstractSystem, ConstrainedLagrangian, MultibodyKinetics, RigidBody
+
+__all__ = [
+    "FallingCat",
+    "FallingCatAttitudes",
+    "FallingCatKinematic",
+    "FallingCatLagrangian",
+    "ShapeLoopTorque",
+]
+
+E2 = jnp.array([0.0, 1.0, 0.0])
+
+_CHART_HINT = (
+    "Iwai's (theta, chi, psi) chart is singular at sin(theta) = 0, where the cat is "
+    "straight and chi, psi turn about the same axis; the motion itself is smooth "
+    "there. Keep the shape path away from theta = 0 (e.g. start slightly bent), or "
+    "lower chart_eps to go closer."
+)
+
+
+class _CatGeometry(eqx.Module):
+    """Parameters and closed-form geometry shared by the cat models."""
+
+    I1: jax.Array
+    lam: jax.Array
+    B: jax.Array
+    mass: jax.Array
+    chart_eps: float = eqx.field(static=True, default=1e-3)
+
+    guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT}
+
+    # --- geometry (6.6), connection (6.7), metric (7.3), curvature (7.13)
+    def D(self, theta):
+        s, c = jnp.sin(theta), jnp.cos(theta)
+        return s * s + self.lam * c * c
+
+    def f(self, theta):
+        """Connection coefficient: psi' = -f(theta) chi'."""
+        return self.lam * jnp.cos(theta) / self.D(theta)
+
+    def curvature(self, theta):
+        """F12(theta) = df/dtheta (7.13)."""
+        s, c = jnp.sin(theta), jnp.cos(theta)
+        return -self.lam * s * (1 + (1 - self.lam) * c * c) / self.D(theta) ** 2
+
+    def holonomy_fixed_theta(self, theta, windings=1.0):
+        """Turn of psi for chi advancing 2 pi * windings at fixed theta: -2 pi f(theta) * windings."""
+        return -2 * jnp.pi * windings * self.f(theta)
+
+    def theta_for_turn(self, turn, windings=1):
+        """theta in (0, pi/2) whose fixed-theta loop turns psi by ``turn`` (|turn| < 2 pi windings).
+
+        Solves f(theta) = k, k = |turn| / (2 pi windings):  k (lam - 1) c^2 - lam c + k = 0.
+        The sign of the turn is set by the direction of the twist.
+        """
+        k = abs(float(turn)) / (2 * np.pi * windings)
+        if not 0 < k < 1:
+            raise ValueError(
+                f"a fixed-theta loop with {windings} winding(s) turns psi by less than "
+                f"2 pi * {windings} in magnitude; asked for {float(turn):.4g}"
+            )
+        lam = float(self.lam)
+        if abs(lam - 1) < 1e-12:
+            c = k
+        else:
+            a, b = k * (lam - 1), -lam
+            disc = np.sqrt(b * b - 4 * a * k)
+            roots = [(-b + disc) / (2 * a), (-b - disc) / (2 * a)]
+            c = [r for r in roots if 0 < r <= 1][0]
+        return float(np.arccos(c))
+
+    @property
+    def l(self):  # noqa: E743
+        """Joint to centre-of-mass distance [m] (from B = m l^2 / I1)."""
+        return jnp.sqrt(self.B * self.I1 / self.mass)
+
+    @property
+    def radius(self):
+        """Cylinder radius [m] of a solid cylinder with I2 = m r^2 / 2 (for drawing)."""
+        return jnp.sqrt(2 * self.lam * self.I1 / self.mass)
+
+    @property
+    def length(self):
+        """Cylinder length [m] of a solid cylinder with I1 = m (3 r^2 + L^2)/12 (for drawing)."""
+        return jnp.sqrt(jnp.maximum(12 * self.I1 / self.mass - 3 * self.radius**2, 0.0))
+
+    def body(self):
+        I2 = self.lam * self.I1
+        return RigidBody(self.mass, jnp.diag(jnp.stack([self.I1, I2, self.I1])))
+
+    def poses(self, q):
+        """Attitudes (2,3,3) and centres of mass (2,3) of the cylinders at q = (theta, chi, psi)."""
+        theta, chi, psi = q[0], q[1], q[2]
+        outer, inner = so3.rot_y(psi), so3.rot_y(chi)
+        g1 = outer @ so3.rot_x(-theta) @ inner
+        g2 = outer @ so3.rot_x(theta) @ inner
+        a1, a2 = g1 @ E2, g2 @ E2
+        r1 = -0.5 * self.l * (a1 + a2)
+        return jnp.stack([g1, g2]), jnp.stack([r1, -r1])
+
+    def joint(self, q):
+        Rs, rs = self.poses(q)
+        return rs[0] + self.l * Rs[0] @ E2
+
+    def kinetics(self):
+        b = self.body()
+        return MultibodyKinetics((b, b), self.poses)
+
+    def angular_momentum_3d(self, q, qd):
+        """Total angular momentum [kg m^2/s] of both cylinders, from their 3-D motion."""
+        return self.kinetics().angular_momentum(q, qd)
+
+    def guards(self, x):
+        return {"sin_theta": jnp.sin(x[0]) - self.chart_eps}
+
+
+class FallingCat(_CatGeometry, AbstractSystem):
+    """Torque-driven falling cat at zero angular momentum (7.14)-(7.15).
+
+    ``equations="hand"`` (default) uses the closed forms above;
+    ``equations="engine"`` uses ``FallingCatLagrangian`` (autodiff from the
+    rigid-body model). See the module docstring for parameters and units.
+    """
+
+    equations: str = eqx.field(static=True, default="hand")
+
+    state_names: ClassVar[tuple] = ("theta", "chi", "psi", "theta_dot", "chi_dot")
+    control_dim: ClassVar[int] = 2
+
+    def __init__(
+        self,
+        I1=0.09895833333333333,
+        lam=0.31578947368421056,
+        B=2.5263157894736845,
+        mass=1.0,
+        equations="hand",
+        chart_eps=1e-3,
+    ):
+        if equations not in ("hand", "engine"):
+            raise ValueError("equations must be 'hand' or 'engine'")
+        for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)):
+            if not isinstance(v, jax.core.Tracer) and not float(v) > 0:
+                raise ValueError(f"{name} must be positive, got {v}")
+        self.I1 = jnp.asarray(I1, float)
+        self.lam = jnp.asarray(lam, float)
+        self.B = jnp.asarray(B, float)
+        self.mass = jnp.asarray(mass, float)
+        self.equations = equations
+        self.chart_eps = float(chart_eps)
+
+    @classmethod
+    def from_dimensions(cls, mass=1.0, length=1.0, radius=0.25, joint_offset=None, **kw):
+        """Solid cylinders of ``mass`` [kg], ``length`` and ``radius`` [m], joint at
+        distance ``joint_offset`` from each centre of mass (default length/2: end to end)."""
+        l = length / 2 if joint_offset is None else joint_offset  # noqa: E741
+        I1 = mass * (3 * radius**2 + length**2) / 12
+        I2 = mass * radius**2 / 2
+        return cls(I1=I1, lam=I2 / I1, B=mass * l**2 / I1, mass=mass, **kw)
+
+    def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
+        """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
+        return jnp.array([theta, chi, psi, theta_dot, chi_dot], dtype=float)
+
+    def velocities(self, x):
+        """Generalized velocities (theta', chi', psi') with psi' = -f chi'."""
+        return jnp.stack([x[3], x[4], -self.f(x[0]) * x[4]])
+
+    def shape_inertia(self, theta):
+        """Diagonal of the vibrational metric (7.3) in (theta, chi): 2 I1 (1 + B s^2), 2 I1 lam s^2/D."""
+        s = jnp.sin(theta)
+        return jnp.stack([2 * self.I1 * (1 + self.B * s * s), 2 * self.I1 * self.lam * s * s / self.D(theta)])
+
+    def shape_accelerations(self, x, u):
+        """(theta'', chi'') from (7.14)."""
+        th, thd, chd = x[0], x[3], x[4]
+        s, c = jnp.sin(th), jnp.cos(th)
+        D = self.D(th)
+        I1, lam, B = self.I1, self.lam, self.B
+        m1, m2 = self.shape_inertia(th)
+        thdd = (-2 * I1 * B * s * c * thd**2 + 2 * I1 * lam**2 * s * c / D**2 * chd**2 + u[0]) / m1
+        chdd = (-4 * I1 * lam**2 * s * c / D**2 * thd * chd + u[1]) / m2
+        return jnp.stack([thdd, chdd])
+
+    def required_torques(self, x, shape_acc):
+        """Inverse of (7.14): the torques (u1, u2) that produce ``shape_acc`` at x."""
+        zero = self.shape_accelerations(x, jnp.zeros(2))
+        return self.shape_inertia(x[0]) * (shape_acc - zero)
+
+    def lagrangian_model(self):
+        return FallingCatLagrangian(self.I1, self.lam, self.B, self.mass)
+
+    def vector_field(self, t, x, u):
+        if u is None:
+            u = jnp.zeros(2, x.dtype)
+        if self.equations == "engine":
+            q = x[:3]
+            qdd, _ = self.lagrangian_model().accelerations(t, q, self.velocities(x), u)
+            acc = qdd[:2]
+        else:
+            acc = self.shape_accelerations(x, u)
+        return jnp.concatenate([self.velocities(x), acc])
+
+    def energy(self, x):
+        """Kinetic energy (7.9) with psi' + f chi' = 0 [J]."""
+        m = self.shape_inertia(x[0])
+        return 0.5 * (m[0] * x[3] ** 2 + m[1] * x[4] ** 2)
+
+    def power(self, t, x, u):
+        return u[0] * x[3] + u[1] * x[4]
+
+    def invariants(self, x):
+        L = self.angular_momentum_3d(x[:3], self.velocities(x))
+        return {"angular_momentum_x": L[0], "angular_momentum_y": L[1], "angular_momentum_z": L[2]}
+
+    def attitude_model(self):
+        return FallingCatAttitudes(self.I1, self.lam, self.B, self.mass, chart_eps=self.chart_eps)
+
+
+class FallingCatLagrangian(_CatGeometry, ConstrainedLagrangian):
+    """The cat from first principles, for the engine: q = (theta, chi, psi).
+
+    T(q, q') is the kinetic energy of the two rigid cylinders placed by
+    ``poses`` (autodiff through rotation matrices, not (7.9)); the constraint is
+    the e2 component of their total angular momentum (the other components
+    vanish identically on these configurations, see the module docstring), and
+    the inputs act as generalized forces (u1, u2, 0).
+    """
+
+    n: int = eqx.field(static=True, default=3)
+    state_names: ClassVar[tuple] = ("theta", "chi", "psi", "theta_dot", "chi_dot", "psi_dot")
+    control_dim: ClassVar[int] = 2
+
+    def __init__(self, I1, lam, B, mass=1.0, chart_eps=1e-3):
+        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
+        self.mass = jnp.asarray(mass, float)
+        self.chart_eps = float(chart_eps)
+        self.n = 3
+
+    def kinetic_energy(self, q, qd):
+        return self.kinetics().kinetic_energy(q, qd)
+
+    def velocity_constraints(self, t, q, qd):
+        return self.angular_momentum_3d(q, qd)[1:2]
+
+    def generalized_force(self, t, q, qd, u):
+        return jnp.stack([u[0], u[1], jnp.zeros((), q.dtype)])
+
+    def guards(self, x):
+        return {"sin_theta": jnp.sin(x[0]) - self.chart_eps}
+
+    def invariants(self, x):
+        L = self.angular_momentum_3d(x[:3], x[3:])
+        return {"angular_momentum_x": L[0], "angular_momentum_z": L[2]}
+
+
+class FallingCatKinematic(_CatGeometry, AbstractSystem):
+    """Velocity-controlled cat (7.1): theta' = u1, chi' = u2, psi' = -f(theta) u2.
+
+    State (theta, chi, psi) [rad]; inputs (theta', chi') [rad/s]. Cost of a
+    motion: the vibrational energy (4.8) with the metric (7.3),
+    ``vibrational_power(x, u)``.
+    """
+
+    state_names: ClassVar[tuple] = ("theta", "chi", "psi")
+    control_dim: ClassVar[int] = 2
+
+    def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0, chart_eps=1e-3):
+        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
+        self.mass = jnp.asarray(mass, float)
+        self.chart_eps = float(chart_eps)
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([u[0], u[1], -self.f(x[0]) * u[1]])
+
+    def vibrational_power(self, x, u):
+        """Integrand of (4.8): (1/2) a_ij u^i u^j = I1 [(1 + B s^2) u1^2 + lam s^2/D u2^2]."""
+        s = jnp.sin(x[0])
+        return self.I1 * ((1 + self.B * s * s) * u[0] ** 2 + self.lam * s * s / self.D(x[0]) * u[1] ** 2)
+
+
+class FallingCatAttitudes(_CatGeometry, AbstractSystem):
+    """The torque-driven cat with both attitudes integrated on SO(3).
+
+    State: (g1, g2, s) with g_i in SO(3) (3x3, body-frame velocities) and
+    s = (theta, chi, theta', chi'). The attitudes obey g_i' = g_i hat(Omega_i),
+    Omega_i the body angular velocity implied by the shape velocities and the
+    zero-momentum connection, so psi is not a coordinate here: the rotation is
+    reconstructed on the group (use ``nhjax.RKMK45``/``RKMK4``). The invariants
+    are computed from the attitudes alone (centres from the joint condition).
+    """
+
+    state_names: ClassVar[tuple] = ()
+    control_dim: ClassVar[int] = 2
+
+    def __init__(self, I1, lam, B, mass=1.0, chart_eps=1e-3):
+        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
+        self.mass = jnp.asarray(mass, float)
+        self.chart_eps = float(chart_eps)
+
+    @property
+    def spaces(self):
+        return (SO3Body(), SO3Body(), Euclidean())
+
+    def _cat(self):
+        return FallingCat(self.I1, self.lam, self.B, self.mass, chart_eps=self.chart_eps)
+
+    def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
+        Rs, _ = self.poses(jnp.array([theta, chi, psi], dtype=float))
+        return (Rs[0], Rs[1], jnp.array([theta, chi, theta_dot, chi_dot], dtype=float))
+
+    def body_angular_velocities(self, s):
+        """Omega_1, Omega_2 [rad/s] for shape state s = (theta, chi, theta', chi')."""
+        q = jnp.array([s[0], s[1], 0.0])
+        qd = jnp.stack([s[2], s[3], -self.f(s[0]) * s[3]])
+        (Rs, _), (Rds, _) = jax.jvp(self.poses, (q,), (qd,))
+        return so3.vee(jnp.swapaxes(Rs, -1, -2) @ Rds)
+
+    def vector_field(self, t, y, u):
+        g1, g2, s = y
+        if u is None:
+            u = jnp.zeros(2, s.dtype)
+        x5 = jnp.array([s[0], s[1], 0.0, s[2], s[3]])
+        acc = self._cat().shape_accelerations(x5, u)
+        W = self.body_angular_velocities(s)
+        return (W[0], W[1], jnp.concatenate([s[2:], acc]))
+
+    def guards(self, y):
+        return {"sin_theta": jnp.sin(y[2][0]) - self.chart_eps}
+
+    def wrap_control(self, control):
+        """Use a control written for ``FallingCat`` (state of 5) on this model."""
+        return _OnAttitudeModel(control)
+
+    def angular_momentum(self, y):
+        """Total angular momentum from the attitudes and their rates alone."""
+        g1, g2, s = y
+        W = self.body_angular_velocities(s)
+        b = self.body()
+        gd1, gd2 = g1 @ so3.hat(W[0]), g2 @ so3.hat(W[1])
+        a1, a2 = g1 @ E2, g2 @ E2
+        ad1, ad2 = gd1 @ E2, gd2 @ E2
+        r1, rd1 = -0.5 * self.l * (a1 + a2), -0.5 * self.l * (ad1 + ad2)
+        return b.angular_momentum(g1, gd1, r1, rd1) + b.angular_momentum(g2, gd2, -r1, -rd1)
+
+    def invariants(self, y):
+        L = self.angular_momentum(y)
+        return {"angular_momentum_x": L[0], "angular_momentum_y": L[1], "angular_momentum_z": L[2]}
+
+    def energy(self, y):
+        g1, g2, s = y
+        return self._cat().energy(jnp.array([s[0], s[1], 0.0, s[2], s[3]]))
+
+    def power(self, t, y, u):
+        s = y[2]
+        return u[0] * s[2] + u[1] * s[3]
+
+
+class _OnAttitudeModel(eqx.Module):
+    control: Any
+
+    @property
+    def breakpoints(self):
+        return getattr(self.control, "breakpoints", None)
+
+    def __call__(self, t, y):
+        s = y[2]
+        return self.control(t, jnp.stack([s[0], s[1], jnp.zeros_like(s[0]), s[2], s[3]]))
+
+
+def _smoothstep(tau):
+    """Quintic 0 -> 1 with zero first and second derivatives at both ends."""
+    tau = jnp.clip(tau, 0.0, 1.0)
+    return tau**3 * (10 - 15 * tau + 6 * tau**2)
+
+
+class ShapeLoopTorque(eqx.Module):
+    """Computed-torque control that drives the cat around a closed shape loop.
+
+    The loop (all phases quintic in time, rest to rest):
+      1. bend:   theta from theta0 to theta1 at chi = 0             (duration t_bend)
+      2. twist:  chi from 0 to 2 pi * windings at theta = theta1    (duration t_twist)
+      3. unbend: theta from theta1 back to theta0                   (duration t_unbend)
+    Only phase 2 moves psi: the loop turns the cat by exactly
+    -2 pi windings f(theta1) (``FallingCat.holonomy_fixed_theta``).
+
+    u = M_s (q_d'' + kp (q_d - q) + kd (q_d' - q')) + h(q, q'): the inverse of
+    (7.14) along the plan, with optional PD correction (gains in 1/s^2, 1/s).
+    ``breakpoints`` tells simulate() where the phases join.
+    """
+
+    cat: FallingCat
+    theta0: jax.Array
+    theta1: jax.Array
+    windings: jax.Array
+    t_bend: jax.Array
+    t_twist: jax.Array
+    t_unbend: jax.Array
+    kp: jax.Array
+    kd: jax.Array
+
+    def __init__(self, cat, theta0, theta1, windings=1.0, t_bend=1.0, t_twist=3.0, t_unbend=1.0, kp=0.0, kd=0.0):
+        self.cat = cat
+        self.theta0, self.theta1, self.windings = (jnp.asarray(v, float) for v in (theta0, theta1, windings))
+        self.t_bend, self.t_twist, self.t_unbend = (jnp.asarray(v, float) for v in (t_bend, t_twist, t_unbend))
+        self.kp, self.kd = jnp.asarray(kp, float), jnp.asarray(kd, float)
+
+    @classmethod
+    def for_turn(cls, cat, turn=np.pi, theta0=0.15, windings=1, **kw):
+        """The loop whose closed-form holonomy turns psi by ``turn`` (sign from the twist direction)."""
+        theta1 = cat.theta_for_turn(turn, windings)
+        w = -np.sign(turn) * windings
+        return cls(cat, theta0, theta1, windings=w, **kw)
+
+    @property
+    def duration(self):
+        return self.t_bend + self.t_twist + self.t_unbend
+
+    @property
+    def breakpoints(self):
+        return jnp.stack([self.t_bend, self.t_bend + self.t_twist])
+
+    @property
+    def turn(self):
+        """Closed-form turn of psi over the whole loop."""
+        return self.cat.holonomy_fixed_theta(self.theta1, self.windings)
+
+    def path(self, t):
+        """Planned (theta, chi) at time t."""
+        t1 = self.t_bend
+        t2 = t1 + self.t_twist
+        s1 = _smoothstep(t / self.t_bend)
+        s2 = _smoothstep((t - t1) / self.t_twist)
+        s3 = _smoothstep((t - t2) / self.t_unbend)
+        theta = self.theta0 + (self.theta1 - self.theta0) * (s1 - s3)
+        chi = 2 * jnp.pi * self.windings * s2
+        return jnp.stack([theta, chi])
+
+    def plan(self, t):
+        """(q_d, q_d', q_d'') of the shape at time t."""
+        dpath = lambda tt: jax.jvp(self.path, (tt,), (jnp.ones_like(tt),))[1]  # noqa: E731
+        t = jnp.asarray(t, float)
+        qd_, qdd_ = jax.jvp(dpath, (t,), (jnp.ones_like(t),))
+        return self.path(t), qd_, qdd_
+
+    def __call__(self, t, x):
+        q, v, a = self.plan(t)
+        shape = jnp.stack([x[0], x[1]])
+        rate = jnp.stack([x[3], x[4]])
+        acc = a + self.kp * (q - shape) + self.kd * (v - rate)
+        return self.cat.required_torques(x, acc)
