@@ -1,0 +1,14 @@
+import jax
+import numpy as np
+import pytest
+
+import nhjax  # noqa: F401  (switches float64 on)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(20261122)
+
+
+def pytest_configure(config):
+    assert jax.config.jax_enable_x64, "nhjax must run in float64"

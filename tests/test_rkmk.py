@@ -1,0 +1,118 @@
+"""Munthe-Kaas solvers: states stay on the group, the tableau's order is kept,
+dense output is on the group, and exact flows of constant velocity are exact."""
+
+import diffrax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax
+from nhjax.integrate import LieODETerm
+from nhjax.lie import SE2Body, SO3Body, SO3Spatial, UnitQuaternionBody, Euclidean, se2, so3
+
+INERTIA = jnp.array([1.0, 2.0, 3.5])
+
+
+def euler_vf(t, y, args):
+    R, W = y
+    return (W, jnp.cross(INERTIA * W, W) / INERTIA)
+
+
+def ambient_vf(t, y, args):
+    R, W = y
+    return (R @ so3.hat(W), jnp.cross(INERTIA * W, W) / INERTIA)
+
+
+Y0 = (jnp.eye(3), jnp.array([0.3, 2.0, 0.1]))  # near the unstable middle axis: a hard tumble
+
+
+@pytest.fixture(scope="module")
+def reference():
+    ts = jnp.linspace(0, 10, 41)
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(ambient_vf), diffrax.Dopri8(), 0.0, 10.0, 0.01, Y0,
+        saveat=diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13), max_steps=100_000,
+    )
+    return ts, sol.ys
+
+
+def test_rkmk4_is_fourth_order(reference):
+    _, (Rref, _) = reference
+    errs = []
+    for n in (100, 200, 400):
+        sol = diffrax.diffeqsolve(LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK4(), 0.0, 10.0, 10.0 / n, Y0, max_steps=1000)
+        R = sol.ys[0][-1]
+        errs.append(np.abs(R - Rref[-1]).max())
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+    rates = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all(rates > 3.8), rates
+
+
+def test_rkmk45_tolerance_proportionality_and_dense_output(reference):
+    ts, (Rref, Wref) = reference
+    prev = np.inf
+    for tol in (1e-6, 1e-9, 1e-12):
+        sol = diffrax.diffeqsolve(
+            LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK45(), 0.0, 10.0, None, Y0,
+            saveat=diffrax.SaveAt(ts=ts), stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
+            max_steps=100_000,
+        )
+        Rs = sol.ys[0]
+        # every saved point, most of them interpolated, lies on SO(3)
+        orth = np.abs(np.einsum("nji,njk->nik", Rs, Rs) - np.eye(3)).max()
+        assert orth < 1e-14
+        err = np.abs(Rs - Rref).max()
+        assert err < 300 * tol and err < prev / 50, (tol, err)
+        prev = err
+
+
+def test_long_run_stays_on_group():
+    sol = diffrax.diffeqsolve(
+        LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK45(), 0.0, 2000.0, None, Y0,
+        stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6), max_steps=200_000,
+    )
+    R, W = sol.ys[0][-1], sol.ys[1][-1]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-13)
+    # spatial angular momentum R I W is conserved by the free rigid body
+    L0 = Y0[0] @ (INERTIA * Y0[1])
+    np.testing.assert_allclose(R @ (INERTIA * W), L0, rtol=1e-3, atol=1e-3)
+    # an ambient-coordinate solver at the same tolerance leaves SO(3)
+    amb = diffrax.diffeqsolve(
+        diffrax.ODETerm(ambient_vf), diffrax.Tsit5(), 0.0, 2000.0, None, Y0,
+        stepsize_controller=diffrax.PIDController(rtol=1e-6, atol=1e-6), max_steps=200_000,
+    )
+    Ra = amb.ys[0][-1]
+    assert np.abs(Ra.T @ Ra - np.eye(3)).max() > 1e-6
+
+
+@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45()])
+def test_constant_velocity_flows_are_exact(solver):
+    """For constant body velocity the exact flow is y0 exp(t v): RKMK reproduces it to round-off."""
+    v3 = jnp.array([0.7, -1.3, 2.9])
+    vse2 = jnp.array([1.0, 0.2, 2.5])
+    q0 = so3.quat_exp(jnp.array([0.1, 0.2, -0.3]))
+    R0 = so3.exp(jnp.array([0.4, 0.0, 1.0]))
+    y0 = (R0, R0, q0, se2.from_xytheta(1.0, 2.0, 0.3))
+    spaces = (SO3Body(), SO3Spatial(), UnitQuaternionBody(), SE2Body())
+    term = LieODETerm(lambda t, y, a: (v3, v3, v3, vse2), spaces)
+    kw = dict(dt0=0.37) if isinstance(solver, nhjax.RKMK4) else dict(
+        dt0=None, stepsize_controller=diffrax.PIDController(rtol=1e-3, atol=1e-3))
+    T = 3.7
+    sol = diffrax.diffeqsolve(term, solver, 0.0, T, y0=y0, max_steps=1000, **kw)
+    R_b, R_s, q, g = (a[-1] for a in sol.ys)
+    np.testing.assert_allclose(R_b, R0 @ so3.exp(T * v3), atol=1e-13)
+    np.testing.assert_allclose(R_s, so3.exp(T * v3) @ R0, atol=1e-13)
+    np.testing.assert_allclose(so3.quat_to_matrix(q), so3.quat_to_matrix(q0) @ so3.exp(T * v3), atol=1e-13)
+    np.testing.assert_allclose(g, y0[3] @ se2.exp(T * vse2), atol=1e-13)
+    np.testing.assert_allclose(np.linalg.norm(q), 1.0, atol=1e-15)
+
+
+def test_quaternion_and_matrix_forms_agree():
+    q0 = so3.quat_exp(jnp.array([0.2, -0.1, 0.4]))
+    y0m = (so3.quat_to_matrix(q0), Y0[1])
+    y0q = (q0, Y0[1])
+    ctrl = diffrax.PIDController(rtol=1e-10, atol=1e-10)
+    sm = diffrax.diffeqsolve(LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK45(), 0.0, 5.0, None, y0m, stepsize_controller=ctrl)
+    sq = diffrax.diffeqsolve(LieODETerm(euler_vf, (UnitQuaternionBody(), Euclidean())), nhjax.RKMK45(), 0.0, 5.0, None, y0q, stepsize_controller=ctrl)
+    np.testing.assert_allclose(so3.quat_to_matrix(sq.ys[0][-1]), sm.ys[0][-1], atol=1e-8)

@@ -1,0 +1,115 @@
+"""simulate(): clear errors for bad input, failures reported with their time,
+the same answers eagerly and under jit, and honest diagnostics."""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax
+from nhjax.mechanics import Lagrangian
+from nhjax.scenes import FallingCat, FallingCatAttitudes
+
+OSC = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 0.5 * 4.0 * q @ q)  # omega = 2
+
+
+def test_harmonic_oscillator_exact_and_diagnostics():
+    tr = nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 3.0, rtol=1e-11, atol=1e-11, saveat=31)
+    np.testing.assert_allclose(tr.xs[:, 0], np.cos(2 * tr.ts), atol=1e-9)
+    assert tr.xs.shape == (31, 2) and tr.us is None and tr.work is None
+    assert float(tr.invariant_drift["energy"]) < 1e-9
+    assert int(tr.num_accepted_steps) > 10
+    assert "energy" in tr.summary()
+    ts = jnp.array([0.0, 0.5, 2.5])
+    tr2 = nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 3.0, saveat=ts, rtol=1e-11, atol=1e-11)
+    np.testing.assert_allclose(tr2.ts, ts)
+    np.testing.assert_allclose(tr2.xs[:, 0], np.cos(2 * ts), atol=1e-9)
+
+
+def test_bad_inputs_are_named():
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8)
+    with pytest.raises(ValueError, match="expects 5 components"):
+        nhjax.simulate(cat, jnp.zeros(4), 1.0)
+    with pytest.raises(ValueError, match="NaN"):
+        nhjax.simulate(cat, x0.at[1].set(jnp.nan), 1.0)
+    with pytest.raises(ValueError, match="2 inputs"):
+        nhjax.simulate(cat, x0, 1.0, control=lambda t, x: jnp.zeros(3))
+    with pytest.raises(TypeError, match="callable"):
+        nhjax.simulate(cat, x0, 1.0, control=jnp.zeros(2))
+    with pytest.raises(ValueError, match="takes no control"):
+        nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 1.0, control=lambda t, x: jnp.zeros(1))
+    with pytest.raises(ValueError, match="greater than t0"):
+        nhjax.simulate(cat, x0, 0.0)
+    with pytest.raises(ValueError, match="sorted"):
+        nhjax.simulate(cat, x0, 1.0, saveat=jnp.array([0.5, 0.2]))
+    with pytest.raises(ValueError, match="fixed-step"):
+        nhjax.simulate(cat, x0, 1.0, solver=diffrax.Euler())
+    with pytest.raises(ValueError, match="on_guard"):
+        nhjax.simulate(cat, x0, 1.0, on_guard="ignore")
+    att = FallingCatAttitudes(0.1, 0.3, 2.0)
+    with pytest.raises(TypeError, match="drift off the group"):
+        nhjax.simulate(att, att.initial_state(0.8), 1.0, solver=diffrax.Tsit5())
+
+
+def test_max_steps_exhaustion_reports_time():
+    with pytest.raises(nhjax.IntegrationError, match="max_steps=5 exhausted") as err:
+        nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 100.0, max_steps=5)
+    assert 0 < err.value.t < 100.0
+    assert err.value.trajectory.ts[-1] == pytest.approx(err.value.t)
+
+
+def test_nan_in_vector_field_reports_time():
+    """q'' = 1/(2 sqrt(1 - q)) reaches q = 1 (where it turns NaN) at a finite time."""
+    sys = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: jnp.sqrt(1.0 - q[0]))
+    with pytest.raises(nhjax.IntegrationError, match="NaN") as err:
+        nhjax.simulate(sys, jnp.array([0.0, 0.5]), 5.0, max_steps=2000)
+    # energy: v^2/2 + sqrt(1 - q) = 1.125, so q reaches 1 with speed 1.5; it started at speed 0.5
+    assert 0.5 < err.value.t < 1.5
+    # with a fixed step the state itself turns NaN: reported between two saved times
+    with pytest.raises(nhjax.IntegrationError, match="state became NaN") as err:
+        nhjax.simulate(sys, jnp.array([0.0, 0.5]), 5.0, solver=diffrax.Euler(), dt0=0.01)
+    assert 0.5 < err.value.t < 1.6
+
+
+class Gain(eqx.Module):
+    k: jax.Array
+
+    def __call__(self, t, x):
+        return jnp.stack([-self.k * x[3], -self.k * x[4]])
+
+
+def test_same_result_under_jit_and_runtime_errors():
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8, theta_dot=0.3, chi_dot=0.5)
+    eager = nhjax.simulate(cat, x0, 2.0, control=Gain(jnp.asarray(0.05)), saveat=5)
+    run = jax.jit(lambda x, k: nhjax.simulate(cat, x, 2.0, control=Gain(k), saveat=5).xs)
+    np.testing.assert_allclose(run(x0, jnp.asarray(0.05)), eager.xs, atol=1e-14)
+    # the damping gain removes energy: the work is negative and balances the energy change
+    assert float(eager.work[-1]) < 0 and float(eager.invariant_drift["energy - work"]) < 1e-7
+    bad = jax.jit(lambda x: nhjax.simulate(cat, x, 2.0, max_steps=3).xs)
+    with pytest.raises(Exception, match="max_steps exhausted, or NaN"):
+        jax.block_until_ready(bad(x0))
+    toward_zero = jax.jit(lambda x: nhjax.simulate(cat, x, 2.0).xs)
+    with pytest.raises(Exception, match="chart guard"):
+        jax.block_until_ready(toward_zero(cat.initial_state(0.3, theta_dot=-1.0)))
+
+
+def test_signals():
+    pl = nhjax.PiecewiseLinear([0.0, 1.0, 3.0], [[0.0, 1.0], [2.0, 1.0], [2.0, -1.0]])
+    np.testing.assert_allclose(pl(0.5), [1.0, 1.0])
+    np.testing.assert_allclose(pl(2.0), [2.0, 0.0])
+    np.testing.assert_allclose(pl.breakpoints, [1.0])
+    pc = nhjax.PiecewiseConstant([0.0, 1.0, 3.0], [[1.0], [5.0]])
+    np.testing.assert_allclose([pc(0.2)[0], pc(1.0)[0], pc(2.9)[0]], [1.0, 5.0, 5.0])
+    with pytest.raises(ValueError, match="one value row per interval"):
+        nhjax.PiecewiseConstant([0.0, 1.0], [[1.0], [2.0]])
+    with pytest.raises(ValueError, match="share one shape"):
+        nhjax.Sinusoids([0.0, 1.0], [1.0], [2.0, 3.0])
+    # a kinked force: x'' = u(t), exact double integral of a piecewise-linear signal
+    sys = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, force=lambda t, q, qd, u: u, control_dim=1)
+    u = nhjax.PiecewiseLinear([0.0, 1.0, 2.0], [0.0, 1.0, 0.0])
+    tr = nhjax.simulate(sys, jnp.zeros(2), 2.0, control=u, saveat=2, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(tr.xs[-1], [1.0, 1.0], atol=1e-12)  # x(2) = 1, v(2) = 1
