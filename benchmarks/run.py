@@ -1,0 +1,18 @@
+"""`make bench` / `nhjax bench`: regenerate every benchmark table and plot.
+
+Each benchmark is a script in this directory with a main(); they share one
+process so that peers and nhjax are measured in the same run on one machine.
+"""
+
+import runpy
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+BENCHMARKS = ["cat_work_precision"]
+
+if __name__ == "__main__":
+    chosen = sys.argv[1:] or BENCHMARKS
+    for name in chosen:
+        print(f"=== {name}")
+        runpy.run_path(str(HERE / f"{name}.py"), run_name="__main__")
