@@ -15,7 +15,7 @@ import jax.numpy as jnp
 
 from . import _series as S
 
-__all__ = ["Ad", "compose", "dexp", "dexpinv", "exp", "from_xytheta", "hat", "inverse", "log", "vee"]
+__all__ = ["Ad", "ad", "compose", "dexp", "dexpinv", "exp", "from_xytheta", "hat", "inverse", "log", "vee"]
 
 _J = jnp.array([[0.0, -1.0], [1.0, 0.0]])
 
@@ -91,6 +91,14 @@ def Ad(g):
     g = jnp.asarray(g)
     t = g[..., :2, 2]
     return _block(g[..., :2, :2], jnp.stack([t[..., 1], -t[..., 0]], -1))
+
+
+def ad(xi):
+    """Matrix of ad_xi on (vx, vy, omega): [hat(xi), hat(eta)] = hat(ad(xi) eta)."""
+    xi = jnp.asarray(xi)
+    v, w = xi[..., :2], xi[..., 2]
+    # _block puts 1 in the corner (group matrices); the algebra's corner is 0.
+    return _block(w[..., None, None] * _J, _ad_col(v)) - jnp.diag(jnp.array([0.0, 0.0, 1.0]))
 
 
 def _ad_col(v):

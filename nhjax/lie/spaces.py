@@ -49,6 +49,11 @@ class AbstractSpace(eqx.Module):
     def algebra_zeros(self, y0):
         raise NotImplementedError
 
+    def coadjoint(self, xi, mu):
+        """The term ad*_xi mu of the Hamel (Euler-Poincare) equations for this part:
+        d/dt dL/dxi = coadjoint(xi, dL/dxi) + (derivative of L along the group) + forces."""
+        raise NotImplementedError
+
 
 class Euclidean(AbstractSpace):
     def retract(self, y0, sigma):
@@ -62,6 +67,9 @@ class Euclidean(AbstractSpace):
 
     def algebra_zeros(self, y0):
         return jnp.zeros_like(y0)
+
+    def coadjoint(self, xi, mu):
+        return jnp.zeros_like(mu)
 
 
 class SO3Body(AbstractSpace):
@@ -78,6 +86,10 @@ class SO3Body(AbstractSpace):
     def algebra_zeros(self, y0):
         return jnp.zeros(y0.shape[:-2] + (3,), y0.dtype)
 
+    def coadjoint(self, xi, mu):
+        # <mu, xi x eta> = <mu x xi, eta>: Euler's  d/dt (I W) = (I W) x W
+        return jnp.cross(mu, xi)
+
 
 class SO3Spatial(AbstractSpace):
     def retract(self, y0, sigma):
@@ -91,6 +103,10 @@ class SO3Spatial(AbstractSpace):
 
     def algebra_zeros(self, y0):
         return jnp.zeros(y0.shape[:-2] + (3,), y0.dtype)
+
+    def coadjoint(self, xi, mu):
+        # right trivialisation: the sign of the bracket flips
+        return jnp.cross(xi, mu)
 
 
 class UnitQuaternionBody(AbstractSpace):
@@ -107,6 +123,9 @@ class UnitQuaternionBody(AbstractSpace):
     def algebra_zeros(self, y0):
         return jnp.zeros(y0.shape[:-1] + (3,), y0.dtype)
 
+    def coadjoint(self, xi, mu):
+        return jnp.cross(mu, xi)
+
 
 class SE2Body(AbstractSpace):
     def retract(self, y0, sigma):
@@ -120,6 +139,9 @@ class SE2Body(AbstractSpace):
 
     def algebra_zeros(self, y0):
         return jnp.zeros(y0.shape[:-2] + (3,), y0.dtype)
+
+    def coadjoint(self, xi, mu):
+        return _mv(jnp.swapaxes(se2.ad(xi), -1, -2), mu)
 
 
 def is_space(x) -> bool:
