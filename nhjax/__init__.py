@@ -18,6 +18,7 @@ from .errors import (  # noqa: E402
     ConstraintViolationError,
     IntegrationError,
     NhjaxError,
+    RegularityError,
 )
 from .integrate import (  # noqa: E402
     RKMK4,
@@ -36,6 +37,7 @@ __all__ = [
     "NhjaxError",
     "PiecewiseConstant",
     "PiecewiseLinear",
+    "RegularityError",
     "RKMK4",
     "RKMK45",
     "Sinusoids",

@@ -48,3 +48,18 @@ class ChartSingularityError(IntegrationError):
         super().__init__(
             f"chart singularity ('{guard}' reached its limit)", t, detail, trajectory
         )
+
+
+class RegularityError(NhjaxError, ValueError):
+    """The equations of motion are ill posed at the initial state (e.g. dependent
+    constraints, or a kinetic energy degenerate on the admissible velocities).
+
+    Attributes: ``condition`` (its name), ``margin`` (the failed relative margin).
+    """
+
+    def __init__(self, condition: str, margin: float, hint: str = ""):
+        self.condition, self.margin = condition, float(margin)
+        super().__init__(
+            f"the initial state violates the regularity condition '{condition}' "
+            f"(relative margin {margin:.2e} <= 0)" + (f": {hint}" if hint else "")
+        )

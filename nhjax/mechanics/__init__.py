@@ -1,6 +1,7 @@
 """Mechanics: the system interface, constrained Lagrangians by autodiff, rigid bodies."""
 
 from .lagrangian import ConstrainedLagrangian, Lagrangian
+from .lie_lagrangian import LieLagrangian
 from .rigid import MultibodyKinetics, RigidBody, body_angular_velocity, cylinder_inertia
 from .system import AbstractSystem
 
@@ -8,6 +9,7 @@ __all__ = [
     "AbstractSystem",
     "ConstrainedLagrangian",
     "Lagrangian",
+    "LieLagrangian",
     "MultibodyKinetics",
     "RigidBody",
     "body_angular_velocity",

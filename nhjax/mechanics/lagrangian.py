@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 
+from ._kkt import REGULARITY_HINTS, kkt_accelerations, metric_projection, regularity_margins
 from .system import AbstractSystem
 
 __all__ = ["ConstrainedLagrangian", "Lagrangian"]
@@ -45,6 +46,7 @@ class ConstrainedLagrangian(AbstractSystem):
     """
 
     n: eqx.AbstractVar[int]
+    regularity_hints = REGULARITY_HINTS
 
     # ----------------------------------------------------------- to override
     def kinetic_energy(self, q, qd):
@@ -122,13 +124,7 @@ class ConstrainedLagrangian(AbstractSystem):
 
     def accelerations(self, t, q, qd, u=None):
         """(q'', lam): accelerations and constraint multipliers (force A^T lam)."""
-        M, rhs, A, b = self.dynamics_terms(t, q, qd, u)
-        m = A.shape[0]
-        if m == 0:
-            return jnp.linalg.solve(M, rhs), jnp.zeros((0,), q.dtype)
-        K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), q.dtype)]])
-        sol = jnp.linalg.solve(K, jnp.concatenate([rhs, -b]))
-        return sol[: self.n], -sol[self.n :]
+        return kkt_accelerations(*self.dynamics_terms(t, q, qd, u))
 
     def inverse_dynamics(self, t, q, qd, qdd, input_matrix):
         """Inputs u and multipliers lam that produce q'' (least squares).
@@ -162,6 +158,10 @@ class ConstrainedLagrangian(AbstractSystem):
             out["position_rate"] = self._all_velocity_constraints(t, q, qd)[c.shape[0] :]
         return out
 
+    def regularity(self, t, x):
+        q, _ = self.split(x)
+        return regularity_margins(self.mass_matrix(q), self.constraint_jacobian(t, q))
+
     def energy(self, x):
         q, qd = self.split(x)
         return self.kinetic_energy(q, qd) + self.potential_energy(q)
@@ -186,11 +186,8 @@ class ConstrainedLagrangian(AbstractSystem):
             q = sol.value
         A = self.constraint_jacobian(t, q)
         if A.shape[0]:
-            a = self._all_velocity_constraints(t, q, jnp.zeros_like(qd))
-            M = self.mass_matrix(q)
-            MinvAT = jnp.linalg.solve(M, A.T)
-            r = A @ qd + a
-            qd = qd - MinvAT @ jnp.linalg.solve(A @ MinvAT, r)
+            r = self._all_velocity_constraints(t, q, qd)
+            qd = qd + metric_projection(self.mass_matrix(q), A, r)
         return jnp.concatenate([q, qd])
 
 

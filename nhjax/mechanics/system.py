@@ -14,7 +14,9 @@ make every simulation self-checking:
   ``ChartSingularityError``) where one crosses zero;
 * ``spaces``: for states with group-valued parts, the ``nhjax.lie`` spaces that
   tell the Lie-group solvers how each part moves;
-* ``project(t, x)``: map a nearby state onto the constraint manifold.
+* ``project(t, x)``: map a nearby state onto the constraint manifold;
+* ``regularity(t, x)``: margins of the conditions that make the equations well
+  posed (e.g. full-rank constraints), checked at x0.
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ class AbstractSystem(eqx.Module):
     control_dim: ClassVar[int] = 0
     # Advice shown when a guard of this name trips.
     guard_hints: ClassVar[dict[str, str]] = {}
+    # Explanation shown when a regularity margin of this name is not positive.
+    regularity_hints: ClassVar[dict[str, str]] = {}
 
     def vector_field(self, t, x, u):
         raise NotImplementedError
@@ -62,3 +66,8 @@ class AbstractSystem(eqx.Module):
 
     def project(self, t, x):
         return x
+
+    def regularity(self, t, x) -> dict:
+        """Margins (name -> scalar, positive = fine) of conditions without which the
+        equations of motion are ill posed; simulate() checks them at x0."""
+        return {}
