@@ -31,9 +31,15 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 
-from ..errors import ChartSingularityError, ConstraintViolationError, IntegrationError
+from ..errors import (
+    ChartSingularityError,
+    ConstraintViolationError,
+    IntegrationError,
+    RegularityError,
+)
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
+from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
 
 __all__ = ["Trajectory", "simulate"]
@@ -104,6 +110,7 @@ class _Static:
     max_steps: int
     progress: bool
     state_names: tuple[str, ...]
+    project_steps: bool = False
 
 
 def _is_traced(*trees) -> bool:
@@ -140,7 +147,18 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
     if track:
         spaces = (spaces, Euclidean())
     term = LieODETerm(_vector_field(static), spaces)
-    saveat = diffrax.SaveAt(subs=[diffrax.SubSaveAt(ts=ts), diffrax.SubSaveAt(t1=True)])
+    save_fn = None
+    if static.project_steps:
+
+        def project(t, y, args):
+            if track:
+                return args[0].project(t, y[0]), y[1]
+            return args[0].project(t, y)
+
+        solver = ProjectedSolver(solver, project)
+        save_fn = project  # dense output between steps is projected too
+    sub = diffrax.SubSaveAt(ts=ts) if save_fn is None else diffrax.SubSaveAt(ts=ts, fn=save_fn)
+    saveat = diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)])
 
     event = None
     if static.guard_names:
@@ -259,7 +277,7 @@ def _initial_report(system, control, x0, t0, project):
         x0 = system.project(t0, x0)
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jtu.tree_leaves(x0)]))
     residuals = {k: _max_abs(v) for k, v in system.constraints(t0, x0).items()}
-    return x0, finite, residuals, dict(system.guards(x0))
+    return x0, finite, residuals, dict(system.guards(x0)), dict(system.regularity(t0, x0))
 
 
 def _check_inputs(system, control, x0, t0, constraint_tol, project):
@@ -275,13 +293,18 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
             raise ValueError(f"{type(system).__name__} takes no control input")
         if not callable(control):
             raise TypeError("control must be callable as control(t, x) -> array of inputs")
-    x0p, finite, residuals, guards = _initial_report(system, control, x0, jnp.asarray(t0, float), project)
+    x0p, finite, residuals, guards, margins = _initial_report(
+        system, control, x0, jnp.asarray(t0, float), project
+    )
     guard_names = tuple(guards)
     if _is_traced(x0, system, control):
         return x0p, guard_names
-    finite, residuals, guards = jax.device_get((finite, residuals, guards))
+    finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
     if not finite:
         raise ValueError("initial state x0 contains NaN or inf")
+    for name, margin in margins.items():
+        if not margin > 0:
+            raise RegularityError(name, float(margin), system.regularity_hints.get(name, ""))
     for name, res in residuals.items():
         if res > constraint_tol:
             raise ConstraintViolationError(name, float(res), constraint_tol)
@@ -311,6 +334,7 @@ def simulate(
     jump_ts=None,
     adjoint=None,
     project: bool = False,
+    project_steps: bool = False,
     constraint_tol: float = 1e-8,
     on_guard: str = "raise",
     track_work: bool | None = None,
@@ -337,6 +361,9 @@ def simulate(
     adjoint : diffrax adjoint for reverse-mode gradients (default: recursive
         checkpointing; ``diffrax.ForwardMode()`` for jvp/jacfwd).
     project : project x0 onto the constraint manifold instead of rejecting it.
+    project_steps : project the state onto the constraint manifold after every
+        step (``ProjectedSolver``), and the saved states too; removes constraint
+        drift on long runs at the cost of a Newton solve per step.
     constraint_tol : largest constraint residual accepted in x0.
     on_guard : "raise" (ChartSingularityError) or "stop" (return the trajectory
         up to where a chart guard crossed zero; ``traj.guard`` names it).
@@ -387,6 +414,7 @@ def simulate(
         max_steps=int(max_steps),
         progress=bool(progress),
         state_names=tuple(system.state_names),
+        project_steps=bool(project_steps),
     )
     ts = _save_times(saveat, t0, t1)
     if dt0 is not None:
