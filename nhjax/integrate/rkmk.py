@@ -32,6 +32,7 @@ from collections.abc import Callable
 from typing import Any, ClassVar
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -168,10 +169,39 @@ _RK4 = _Tableau(
 )
 
 
+def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0):
+    """The stage loop as a lax.scan: the vector field is traced once instead of once
+    per stage (much faster to compile for large vector fields)."""
+    tab = self.tableau
+    n = len(tab.c)
+    A = np.zeros((n, n))
+    for i, ai in enumerate(tab.a):
+        A[i, : len(ai)] = ai
+    A, c = jnp.asarray(A), jnp.asarray(tab.c)
+    ks0 = jtu.tree_map(lambda k: jnp.zeros((n,) + k.shape, k.dtype).at[0].set(k), f0)
+
+    def body(carry, i):
+        ks, _, _ = carry
+        sigma_i = jtu.tree_map(lambda K: h * jnp.tensordot(A[i], K, axes=1), ks)
+        y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
+        f_i = terms.vf(t0 + c[i] * h, y_i, args)
+        k_i = _map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_i)
+        ks = jtu.tree_map(lambda K, k: K.at[i].set(k), ks, k_i)
+        return (ks, f_i, sigma_i), None
+
+    init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0))
+    (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(1, n))
+    return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last
+
+
 class _AbstractRKMK(diffrax.AbstractSolver):
     term_structure: ClassVar = AbstractTerm
     interpolation_cls: ClassVar = LieInterpolation
     tableau: ClassVar[_Tableau]
+    # Run the stages as a lax.scan (compile the vector field once, not once per stage):
+    # worth it for large vector fields, e.g. autodiff-derived multibody dynamics.
+    scan_stages: bool = eqx.field(default=False, static=True)
+    _stages_scanned = _stages_scanned
 
     def order(self, terms):
         return self.tableau.order
@@ -194,15 +224,17 @@ class _AbstractRKMK(diffrax.AbstractSolver):
             )
         else:
             f0 = terms.vf(t0, y0, args)
-        ks = [f0]  # k_1 = dexpinv_0(f0) = f0
-        f_last = f0
-        sigma_last = None
-        for ci, ai in zip(tab.c[1:], tab.a[1:]):
-            sigma_i = _lincomb(ai, ks, h)
-            y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
-            f_last = terms.vf(t0 + ci * h, y_i, args)
-            ks.append(_map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_last))
-            sigma_last = sigma_i
+        if self.scan_stages:
+            ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0)
+        else:
+            ks = [f0]  # k_1 = dexpinv_0(f0) = f0
+            f_last, sigma_last = f0, None
+            for ci, ai in zip(tab.c[1:], tab.a[1:]):
+                sigma_i = _lincomb(ai, ks, h)
+                y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
+                f_last = terms.vf(t0 + ci * h, y_i, args)
+                ks.append(_map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_last))
+                sigma_last = sigma_i
         if tab.fsal:
             # Last stage sits at t1 with a_last == b: its sigma is the step's sigma.
             sigma = sigma_last

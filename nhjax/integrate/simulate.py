@@ -208,6 +208,8 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         x0,
     )
     invariants = dict(jax.vmap(system.invariants)(x_safe))
+    if control is None:
+        invariants.update(jax.vmap(system.free_invariants)(x_safe))
     has_energy = system.energy(x0) is not None
     if has_energy and (track or control is None):
         energies = jax.vmap(system.energy)(x_safe)
@@ -353,7 +355,8 @@ def simulate(
         is not smooth) gets steps placed exactly there.
     saveat : int (that many equally spaced times, default 101) or 1-D array of times.
     solver : a diffrax solver; default ``diffrax.Tsit5()`` for vector states and
-        ``nhjax.RKMK45()`` when the state has group-valued parts.
+        ``nhjax.RKMK45()`` when the state has group-valued parts (with its stages
+        in a lax.scan when the system declares a large vector field).
     rtol, atol : tolerances of the default ``diffrax.PIDController``.
     dt0 : initial step; required (and the step) for fixed-step solvers.
     max_steps : budget of solver steps; exhausting it raises ``IntegrationError``.
@@ -382,7 +385,7 @@ def simulate(
     spaces = system.spaces
     euclid = _all_euclidean(spaces)
     if solver is None:
-        solver = diffrax.Tsit5() if euclid else RKMK45()
+        solver = diffrax.Tsit5() if euclid else RKMK45(scan_stages=system.large_vector_field)
     elif not euclid and not isinstance(solver, _AbstractRKMK):
         raise TypeError(
             f"{type(system).__name__} has group-valued state parts; "

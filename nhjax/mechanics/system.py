@@ -6,7 +6,7 @@ make every simulation self-checking:
 
 * ``constraints(t, x)``: residuals that must stay zero (name -> array);
 * ``invariants(x)``: quantities conserved for *every* admissible control
-  (name -> scalar);
+  (name -> scalar); ``free_invariants(x)``: those conserved without inputs;
 * ``energy(x)`` and ``power(t, x, u)``: with a control, simulate() integrates
   the work of the inputs and reports the drift of energy - work;
 * ``guards(x)``: chart guards, positive inside the region where the
@@ -41,6 +41,9 @@ class AbstractSystem(eqx.Module):
     guard_hints: ClassVar[dict[str, str]] = {}
     # Explanation shown when a regularity margin of this name is not positive.
     regularity_hints: ClassVar[dict[str, str]] = {}
+    # Large vector fields (e.g. autodiff-derived multibody dynamics) compile much faster
+    # when a Runge-Kutta solver traces them once (stages in a lax.scan).
+    large_vector_field: ClassVar[bool] = False
 
     def vector_field(self, t, x, u):
         raise NotImplementedError
@@ -53,6 +56,10 @@ class AbstractSystem(eqx.Module):
         return {}
 
     def invariants(self, x) -> dict:
+        return {}
+
+    def free_invariants(self, x) -> dict:
+        """Quantities conserved when no input acts (reported when simulate() gets no control)."""
         return {}
 
     def guards(self, x) -> dict:
