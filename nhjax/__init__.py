@@ -21,6 +21,7 @@ from .errors import (  # noqa: E402
     RegularityError,
 )
 from .integrate import (  # noqa: E402
+    BatchError,
     RKMK4,
     RKMK45,
     PiecewiseConstant,
@@ -28,9 +29,12 @@ from .integrate import (  # noqa: E402
     Sinusoids,
     Trajectory,
     simulate,
+    simulate_batch,
+    stack,
 )
 
 __all__ = [
+    "BatchError",
     "ChartSingularityError",
     "ConstraintViolationError",
     "IntegrationError",
@@ -46,5 +50,7 @@ __all__ = [
     "mechanics",
     "scenes",
     "simulate",
+    "simulate_batch",
+    "stack",
 ]
 __version__ = "0.1.0"

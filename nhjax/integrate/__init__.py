@@ -1,10 +1,12 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
+from .batch import BatchError, simulate_batch, stack
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
 from .simulate import Trajectory, simulate
 
 __all__ = [
+    "BatchError",
     "LieODETerm",
     "PiecewiseConstant",
     "PiecewiseLinear",
@@ -13,4 +15,6 @@ __all__ = [
     "Sinusoids",
     "Trajectory",
     "simulate",
+    "simulate_batch",
+    "stack",
 ]

@@ -170,7 +170,9 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
             return jnp.min(jnp.stack([g[n] for n in static.guard_names]))
 
         event = diffrax.Event(
-            cond_fn=cond, root_finder=optx.Bisection(rtol=1e-13, atol=1e-13)
+            # guards only decrease through zero (they start positive and the solve stops
+            # there), so the direction is known: flip=True also keeps vmapped solves valid
+            cond_fn=cond, root_finder=optx.Bisection(rtol=1e-13, atol=1e-13, flip=True)
         )
     progress_meter = (
         diffrax.TqdmProgressMeter() if static.progress else diffrax.NoProgressMeter()
@@ -319,6 +321,53 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
     return x0p, guard_names
 
 
+def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
+               max_steps, stepsize_controller, jump_ts, adjoint, project_steps, track_work, progress):
+    """Resolve solver, step-size controller, adjoint, save times and the static
+    configuration of a solve (shared by simulate and simulate_batch)."""
+    spaces = system.spaces
+    euclid = _all_euclidean(spaces)
+    if solver is None:
+        solver = diffrax.Tsit5() if euclid else RKMK45(scan_stages=system.large_vector_field)
+    elif not euclid and not isinstance(solver, _AbstractRKMK):
+        raise TypeError(
+            f"{type(system).__name__} has group-valued state parts; "
+            f"{type(solver).__name__} would integrate them in ambient coordinates and "
+            "drift off the group. Use nhjax.RKMK45() (adaptive) or nhjax.RKMK4() (fixed step)."
+        )
+    if jump_ts is None and control is not None and hasattr(control, "breakpoints"):
+        jump_ts = control.breakpoints
+    if stepsize_controller is None:
+        if isinstance(solver, diffrax.AbstractAdaptiveSolver):
+            # Tolerances as arrays: changing them does not recompile.
+            stepsize_controller = diffrax.PIDController(
+                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts
+            )
+        else:
+            if dt0 is None:
+                raise ValueError(
+                    f"{type(solver).__name__} is a fixed-step solver: pass dt0 (the step)"
+                )
+            stepsize_controller = diffrax.ConstantStepSize()
+    if adjoint is None:
+        adjoint = diffrax.RecursiveCheckpointAdjoint()
+
+    if track_work is None:
+        track_work = control is not None and _defines_power(system)
+    static = _Static(
+        track_work=bool(track_work),
+        guard_names=guard_names,
+        max_steps=int(max_steps),
+        progress=bool(progress),
+        state_names=tuple(system.state_names),
+        project_steps=bool(project_steps),
+    )
+    ts = _save_times(saveat, t0, t1)
+    if dt0 is not None:
+        dt0 = jnp.asarray(dt0, float)
+    return solver, stepsize_controller, adjoint, dt0, static, ts
+
+
 def simulate(
     system,
     x0,
@@ -382,46 +431,12 @@ def simulate(
     x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
     x0, guard_names = _check_inputs(system, control, x0, t0, constraint_tol, project)
 
-    spaces = system.spaces
-    euclid = _all_euclidean(spaces)
-    if solver is None:
-        solver = diffrax.Tsit5() if euclid else RKMK45(scan_stages=system.large_vector_field)
-    elif not euclid and not isinstance(solver, _AbstractRKMK):
-        raise TypeError(
-            f"{type(system).__name__} has group-valued state parts; "
-            f"{type(solver).__name__} would integrate them in ambient coordinates and "
-            "drift off the group. Use nhjax.RKMK45() (adaptive) or nhjax.RKMK4() (fixed step)."
-        )
-    if jump_ts is None and control is not None and hasattr(control, "breakpoints"):
-        jump_ts = control.breakpoints
-    if stepsize_controller is None:
-        if isinstance(solver, diffrax.AbstractAdaptiveSolver):
-            # Tolerances as arrays: changing them does not recompile.
-            stepsize_controller = diffrax.PIDController(
-                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts
-            )
-        else:
-            if dt0 is None:
-                raise ValueError(
-                    f"{type(solver).__name__} is a fixed-step solver: pass dt0 (the step)"
-                )
-            stepsize_controller = diffrax.ConstantStepSize()
-    if adjoint is None:
-        adjoint = diffrax.RecursiveCheckpointAdjoint()
-
-    if track_work is None:
-        track_work = control is not None and _defines_power(system)
-    static = _Static(
-        track_work=bool(track_work),
-        guard_names=guard_names,
-        max_steps=int(max_steps),
-        progress=bool(progress),
-        state_names=tuple(system.state_names),
-        project_steps=bool(project_steps),
+    solver, stepsize_controller, adjoint, dt0, static, ts = _configure(
+        system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
+        atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
+        jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
+        progress=progress,
     )
-    ts = _save_times(saveat, t0, t1)
-    if dt0 is not None:
-        dt0 = jnp.asarray(dt0, float)
     traj = _solve(
         system, control, x0, jnp.asarray(t0, float), jnp.asarray(t1, float), ts,
         solver, stepsize_controller, adjoint, dt0, static,

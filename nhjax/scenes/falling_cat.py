@@ -208,7 +208,7 @@ class FallingCat(_CatGeometry, AbstractSystem):
         if equations not in ("hand", "engine"):
             raise ValueError("equations must be 'hand' or 'engine'")
         for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)):
-            if not isinstance(v, jax.core.Tracer) and not float(v) > 0:
+            if not isinstance(v, jax.core.Tracer) and not np.all(np.asarray(v) > 0):
                 raise ValueError(f"{name} must be positive, got {v}")
         self.I1 = jnp.asarray(I1, float)
         self.lam = jnp.asarray(lam, float)

@@ -45,6 +45,7 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..lie import Euclidean, SO3Body, so3
 from ..mechanics import LieLagrangian
@@ -55,7 +56,7 @@ E3 = jnp.array([0.0, 0.0, 1.0])
 
 
 def _check_positive(name, value):
-    if not isinstance(value, jax.core.Tracer) and not float(value) > 0:
+    if not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
         raise ValueError(f"{name} must be positive, got {value}")
 
 

@@ -1,0 +1,305 @@
+"""``nhjax.simulate_batch``: many trajectories at once, on all local CPU cores.
+
+A batch varies any of the initial state, the system's parameters and the
+control's parameters (leading axis 0 of the arrays of the batched ones, chosen
+with ``in_axes``). Each member gets its own adaptive step sizes, so it is solved
+to the same tolerance, and to the same result, as a single ``simulate()`` call.
+
+How it runs: the batch is cut into chunks of ``chunk_size`` members; a chunk is
+one compiled, vmapped solve (members step in lock-step, finished ones idle).
+Chunks are dispatched to every local CPU device, or, with a single device, to
+``workers`` threads that run compiled chunks concurrently (XLA releases the
+GIL), so both cores of a laptop work. Memory stays bounded: a chunk holds only
+its working state, and only the requested saved times are kept.
+
+Errors name the members: bad initial states (NaN, constraint violation, outside
+a chart, ill-posed) and failed solves (max_steps, NaN, chart guard) raise
+``BatchError`` listing member indices, reasons and times.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+from ..errors import NhjaxError
+from .simulate import _configure, _initial_report, _solve
+
+__all__ = ["BatchError", "simulate_batch", "stack"]
+
+
+def stack(members):
+    """Stack equally-structured systems, controls or states into one batched pytree."""
+    members = list(members)
+    if not members:
+        raise ValueError("stack() needs at least one member")
+    return jtu.tree_map(lambda *a: jnp.stack([jnp.asarray(x) for x in a]), *members)
+
+
+class BatchError(NhjaxError, RuntimeError):
+    """Some members of a batch failed. ``members``: indices; ``reasons``: per member;
+    ``times``: time of failure per member (t0 for bad initial states);
+    ``trajectory``: the batch result (None for bad initial states)."""
+
+    def __init__(self, what, members, reasons, times, trajectory=None):
+        self.members, self.reasons, self.times, self.trajectory = members, reasons, times, trajectory
+        shown = "; ".join(
+            f"member {m}: {r} at t = {t:.6g}" for m, r, t in list(zip(members, reasons, times))[:8]
+        )
+        more = f" (and {len(members) - 8} more)" if len(members) > 8 else ""
+        super().__init__(f"{what} in {len(members)} member(s) of the batch: {shown}{more}")
+
+
+def _batch_size(args, axes):
+    sizes = {}
+    for name, arg, ax in zip(("system", "x0", "control"), args, axes):
+        if ax is None:
+            continue
+        leaves = [a for a in jtu.tree_leaves(arg) if hasattr(a, "shape")]
+        if not leaves:
+            raise ValueError(f"in_axes marks '{name}' as batched but it has no arrays")
+        for a in leaves:
+            if a.ndim == 0:
+                raise ValueError(
+                    f"'{name}' is batched but has a scalar leaf: every array needs the batch "
+                    "axis. Build the batch with nhjax.stack([member, ...]) or "
+                    "equinox.filter_vmap(lambda p: Scene(param=p))(params)"
+                )
+            sizes.setdefault(a.shape[0], name)
+    if len(sizes) != 1:
+        raise ValueError(
+            "batched arguments disagree on the batch size: "
+            + ", ".join(f"{n} has {b}" for b, n in sizes.items())
+        )
+    return next(iter(sizes))
+
+
+def _take(tree, ax, sl):
+    if ax is None:
+        return tree
+    return jtu.tree_map(lambda a: a[sl] if hasattr(a, "shape") and a.ndim else a, tree)
+
+
+def _available_memory_bytes():
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+
+@eqx.filter_jit
+def _report_chunk(system, x0, control, t0, project, axes):
+    return eqx.filter_vmap(
+        lambda s, x, c: _initial_report(s, c, x, t0, project), in_axes=axes
+    )(system, x0, control)
+
+
+@eqx.filter_jit
+def _solve_chunk(system, x0, control, t0, t1, options, guard_names, axes):
+    def member(s, x, c):
+        solver, controller, adjoint, dt0, static, ts = _configure(s, c, x, t0, t1, guard_names, **options)
+        return _solve(s, c, x, t0, t1, ts, solver, controller, adjoint, dt0, static)
+
+    return eqx.filter_vmap(member, in_axes=axes)(system, x0, control)
+
+
+def simulate_batch(
+    system,
+    x0,
+    t1,
+    *,
+    t0=0.0,
+    control=None,
+    in_axes=None,
+    chunk_size: int = 1024,
+    workers: int | None = None,
+    progress: bool | None = None,
+    saveat=2,
+    solver=None,
+    rtol: float = 1e-8,
+    atol: float = 1e-8,
+    dt0=None,
+    max_steps: int = 100_000,
+    stepsize_controller=None,
+    jump_ts=None,
+    adjoint=None,
+    project: bool = False,
+    project_steps: bool = False,
+    constraint_tol: float = 1e-8,
+    on_guard: str = "raise",
+    track_work: bool | None = None,
+):
+    """Simulate a batch of trajectories; returns a ``Trajectory`` whose arrays have a
+    leading batch axis (``traj.xs[i]`` is member i's saved states).
+
+    in_axes : dict with keys among "system", "x0", "control" giving 0 (batched along
+        axis 0) or None; default ``{"x0": 0}``.
+    chunk_size : members per compiled chunk (bounds memory; the last chunk is padded).
+    workers : concurrent chunks (default: the number of local devices, or 2 threads
+        on a single CPU device when the machine has at least 2 cores).
+    progress : tqdm bar over chunks (default: on for more than 4 chunks).
+    saveat : as in simulate(); default 2 (t0 and t1), the cheap choice for big batches.
+    Other arguments as ``nhjax.simulate``.
+    """
+    if on_guard not in ("raise", "stop"):
+        raise ValueError("on_guard must be 'raise' or 'stop'")
+    axes_d = {"x0": 0} if in_axes is None else dict(in_axes)
+    unknown = set(axes_d) - {"system", "x0", "control"}
+    if unknown:
+        raise ValueError(f"in_axes keys must be among 'system', 'x0', 'control'; got {sorted(unknown)}")
+    for k, v in axes_d.items():
+        if v not in (0, None):
+            raise ValueError(f"in_axes['{k}'] must be 0 or None, got {v}")
+    x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
+    axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
+    B = _batch_size((system, x0, control), axes)
+    if not float(t1) > float(t0):
+        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
+
+    # Static checks on one member (shapes, control signature) through simulate's own checks.
+    ex_sys, ex_x0, ex_ctrl = (_take(a, ax, 0) for a, ax in zip((system, x0, control), axes))
+    names = ex_sys.state_names
+    if names and hasattr(ex_x0, "shape") and ex_x0.shape != (len(names),):
+        raise ValueError(
+            f"each member's x0 has shape {ex_x0.shape}; {type(ex_sys).__name__} expects "
+            f"{len(names)} components {names}"
+        )
+    if ex_ctrl is not None and ex_sys.control_dim == 0:
+        raise ValueError(f"{type(ex_sys).__name__} takes no control input")
+
+    options = dict(
+        saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps,
+        stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
+        project_steps=project_steps, track_work=track_work, progress=False,
+    )
+    t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
+    # Memory: the saved states of the whole batch must fit.
+    n_save = saveat if isinstance(saveat, int) else len(np.asarray(saveat))
+    state_bytes = sum(np.asarray(a).size for a in jtu.tree_leaves(ex_x0)) * 8
+    need = B * n_save * state_bytes * 3  # states, plus invariants/us/work headroom
+    avail = _available_memory_bytes()
+    if need > 0.8 * avail:
+        raise MemoryError(
+            f"the batch would keep about {need / 2**30:.1f} GiB of saved states "
+            f"({B} members x {n_save} saved times x {state_bytes} bytes), more than the "
+            f"{avail / 2**30:.1f} GiB available: save fewer times (saveat=2 keeps t0 and t1) "
+            "or split the batch"
+        )
+
+    chunk = max(1, min(int(chunk_size), B))
+    starts = list(range(0, B, chunk))
+    devices = jax.local_devices()
+    if workers is None:
+        workers = len(devices) if len(devices) > 1 else (2 if (os.cpu_count() or 1) >= 2 else 1)
+    if progress is None:
+        progress = len(starts) > 4
+
+    def pad(tree, ax, lo):
+        if ax is None:
+            return tree
+        idx = np.minimum(np.arange(lo, lo + chunk), B - 1)  # pad the last chunk with copies
+        return jtu.tree_map(lambda a: a[idx] if hasattr(a, "shape") and a.ndim else a, tree)
+
+    def chunk_args(lo, device):
+        args = [pad(a, ax, lo) for a, ax in zip((system, x0, control), axes)]
+        if len(devices) > 1:
+            args = [jax.device_put(a, device) if ax is not None else a for a, ax in zip(args, axes)]
+        return args
+
+    # 1. initial states, all members
+    guard_names = None
+    bad = []
+    for lo in starts:
+        s, x, c = chunk_args(lo, devices[0])
+        _, finite, residuals, guards, margins = _report_chunk(s, x, c, t0a, project, axes)
+        finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
+        guard_names = tuple(guards)
+        for j in range(min(chunk, B - lo)):
+            reason = None
+            if not finite[j]:
+                reason = "x0 contains NaN or inf"
+            for k, r in residuals.items():
+                if reason is None and r[j] > constraint_tol:
+                    reason = f"constraint '{k}' violated by {r[j]:.2e} (pass project=True)"
+            for k, m in margins.items():
+                if reason is None and not m[j] > 0:
+                    reason = f"regularity condition '{k}' fails"
+            for k, g in guards.items():
+                if reason is None and g[j] <= 0:
+                    reason = f"outside the chart ('{k}')"
+            if reason is not None:
+                bad.append((lo + j, reason))
+    if bad:
+        m, r = zip(*bad)
+        raise BatchError("bad initial states", list(m), list(r), [float(t0)] * len(m))
+
+    # 2. the solves, chunk by chunk, on all cores
+    lock = threading.Lock()
+    results = [None] * len(starts)
+
+    def run(i):
+        device = devices[i % len(devices)]
+        s, x, c = chunk_args(starts[i], device)
+        if project:
+            x = eqx.filter_vmap(lambda ss, xx: ss.project(t0a, xx), in_axes=(axes[0], 0))(s, x)
+        out = _solve_chunk(s, x, c, t0a, t1a, options, guard_names, axes)
+        out = jax.block_until_ready(out)
+        with lock:
+            results[i] = out
+        return i
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=B, desc="nhjax batch", unit="traj")
+    def done(i):
+        if bar is not None:
+            bar.update(min(chunk, B - starts[i]))
+
+    done(run(0))  # compiles once, before any concurrency
+    if workers > 1 and len(starts) > 2:
+        with ThreadPoolExecutor(workers) as pool:
+            for i in pool.map(run, range(1, len(starts))):
+                done(i)
+    else:
+        for i in range(1, len(starts)):
+            done(run(i))
+    if bar is not None:
+        bar.close()
+
+    traj = jtu.tree_map(lambda *a: jnp.concatenate(a)[:B], *results)
+    _check_results(traj, guard_names, on_guard)
+    return traj
+
+
+def _check_results(traj, guard_names, on_guard):
+    result, t_final = jax.device_get((traj.result._value, traj.t_final))
+    ok = int(diffrax.RESULTS.successful._value)
+    ev = int(diffrax.RESULTS.event_occurred._value)
+    failed = np.nonzero((result != ok) & (result != ev))[0]
+    if failed.size:
+        known = {
+            int(diffrax.RESULTS.max_steps_reached._value): "max_steps exhausted (or NaN/inf ahead)",
+            int(diffrax.RESULTS.dt_min_reached._value): "minimum step size reached",
+        }
+        reasons = [known.get(int(result[i]), f"solver failure (diffrax code {int(result[i])})") for i in failed]
+        raise BatchError("failed solves", failed.tolist(), reasons, t_final[failed].tolist(), traj)
+    stopped = np.nonzero(result == ev)[0]
+    if stopped.size and on_guard == "raise":
+        raise BatchError(
+            "a chart guard stopped the solve (pass on_guard='stop' to keep these members)",
+            stopped.tolist(), [f"guard of {guard_names}" for _ in stopped], t_final[stopped].tolist(), traj,
+        )

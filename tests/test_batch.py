@@ -1,0 +1,74 @@
+"""simulate_batch: per member the same result as simulate(), also for members
+that need very different numbers of steps; batched parameters and controls;
+bad members named."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax
+from nhjax.scenes import FallingCat
+
+CTRL = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])
+
+
+def test_batch_equals_single_including_very_different_step_counts():
+    cat = FallingCat()
+    # calm members and one with a fast twist (many more steps)
+    X = jnp.array([[0.8, 0, 0, 0, 0.5], [0.9, 0, 0, 0.1, 0.3], [0.7, 0, 0, 0, 6.0], [1.0, 1.0, 0, -0.2, 0.5]])
+    tr = nhjax.simulate_batch(cat, X, 10.0, control=CTRL, rtol=1e-9, atol=1e-9, saveat=5, chunk_size=3)
+    steps = np.asarray(tr.num_accepted_steps)
+    assert steps.max() > 3 * steps.min()
+    for i in range(X.shape[0]):
+        one = nhjax.simulate(cat, X[i], 10.0, control=CTRL, rtol=1e-9, atol=1e-9, saveat=5)
+        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+        assert int(tr.num_accepted_steps[i]) == int(one.num_accepted_steps)
+        np.testing.assert_allclose(tr.invariant_drift["energy - work"][i], one.invariant_drift["energy - work"], atol=1e-13)
+
+
+def test_batched_parameters_and_controls():
+    # a batch of cats with different inertia ratios, each under its own torque amplitude
+    lams = jnp.array([0.2, 0.5, 1.5])
+    cats = nhjax.stack([FallingCat(lam=lam) for lam in lams])
+    ctrls = nhjax.Sinusoids(jnp.zeros((3, 2)), jnp.array([[0.01, 0.0], [0.02, 0.0], [0.03, 0.01]]),
+                            jnp.ones((3, 2)))
+    x0 = FallingCat().initial_state(0.8, chi_dot=0.5)
+    tr = nhjax.simulate_batch(cats, x0, 5.0, control=ctrls, in_axes={"system": 0, "control": 0},
+                              rtol=1e-10, atol=1e-10)
+    for i in range(3):
+        one = nhjax.simulate(FallingCat(lam=lams[i]), x0, 5.0, rtol=1e-10, atol=1e-10, saveat=2,
+                             control=nhjax.Sinusoids(ctrls.offset[i], ctrls.amplitude[i], ctrls.omega[i]))
+        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="nhjax.stack"):
+        nhjax.simulate_batch(FallingCat(lam=lams), x0, 1.0, in_axes={"system": 0})
+
+
+def test_bad_members_are_named():
+    cat = FallingCat()
+    X = jnp.tile(cat.initial_state(0.8, chi_dot=0.5), (6, 1))
+    X = X.at[2, 1].set(jnp.nan).at[4, 0].set(0.0)
+    with pytest.raises(nhjax.BatchError, match=r"member 2: x0 contains NaN.*member 4: outside the chart") as e:
+        nhjax.simulate_batch(cat, X, 1.0)
+    assert e.value.members == [2, 4]
+    # member 3 heads for the singular chart, member 5 runs out of steps
+    X = jnp.tile(cat.initial_state(0.8, chi_dot=0.5), (6, 1))
+    X = X.at[3].set(cat.initial_state(0.3, theta_dot=-1.0))
+    with pytest.raises(nhjax.BatchError, match="member 3") as e:
+        nhjax.simulate_batch(cat, X, 2.0)
+    assert e.value.members == [3] and 0.25 < e.value.times[0] < 0.32
+    tr = nhjax.simulate_batch(cat, X, 2.0, on_guard="stop")
+    assert float(tr.t_final[3]) == pytest.approx(e.value.times[0]) and float(tr.t_final[0]) == 2.0
+    fast = X.at[5, 4].set(50.0)
+    with pytest.raises(nhjax.BatchError, match="member 5: max_steps exhausted"):
+        nhjax.simulate_batch(cat, fast.at[3].set(X[0]), 2.0, max_steps=200)
+
+
+def test_input_errors():
+    cat = FallingCat()
+    X = jnp.tile(cat.initial_state(0.8), (4, 1))
+    with pytest.raises(ValueError, match="disagree on the batch size"):
+        nhjax.simulate_batch(nhjax.stack([cat, cat]), X, 1.0, in_axes={"system": 0, "x0": 0})
+    with pytest.raises(ValueError, match="in_axes keys"):
+        nhjax.simulate_batch(cat, X, 1.0, in_axes={"params": 0})
+    with pytest.raises(MemoryError, match="save fewer times"):
+        nhjax.simulate_batch(cat, jnp.tile(X, (250_000, 1)), 1.0, saveat=10_000)
