@@ -84,3 +84,30 @@ def test_bad_parameters():
         ShellWithTop(It=np.diag([1.0, -1.0, 1.0]))
     with pytest.raises(ValueError, match="ms must be positive"):
         ShellWithTop(ms=0.0)
+
+
+def test_agrees_with_reduced_hand_equations(rng):
+    """Hamel equations on SO(3) x SO(3) x R^2 (autodiff) against the hand-derived reduced
+    system (1.11) with its torque terms (ShellWithTopReduced), on random states."""
+    from nhjax.scenes.shell_with_top import ShellWithTopReduced
+
+    It, c = random_inertia(rng), rng.normal(size=3) * 0.05
+    rob = ShellWithTop(ms=1.3, Rs=0.25, mt=0.7, It=It, c=c)
+    red = ShellWithTopReduced(ms=1.3, Rs=0.25, mt=0.7, It=It, c=c)
+    E3 = jnp.array([0.0, 0.0, 1.0])
+    for _ in range(4):
+        y = rob.initial_state(
+            xy=rng.normal(size=2), shell_attitude=so3.exp(jnp.asarray(rng.normal(size=3))),
+            top_attitude=so3.exp(jnp.asarray(rng.normal(size=3))),
+            shell_omega=rng.normal(size=3), top_omega=rng.normal(size=3),
+        )
+        tau = jnp.asarray(rng.normal(size=3) * 0.1)
+        (xy, Rsh, Rt), v = y
+        Om_top = Rt.T @ Rsh @ v[2:5]
+        x = jnp.concatenate([v[5:8], Om_top, Rt.T @ E3, Rt.T @ jnp.array([1.0, 0, 0]), Rt.T @ jnp.array([0, 1.0, 0]), xy])
+        dx = red.forced_vector_field(0.0, x, tau)
+        _, vd = rob.vector_field(0.0, y, tau)
+        np.testing.assert_allclose(vd[5:8], dx[0:3], rtol=1e-10, atol=1e-10)
+        dOm = -jnp.cross(v[5:8], Om_top) + Rt.T @ Rsh @ vd[2:5]
+        np.testing.assert_allclose(dOm, dx[3:6], rtol=1e-10, atol=1e-10)
+        np.testing.assert_allclose(v[:2], dx[15:17], atol=1e-12)  # contact point velocity
