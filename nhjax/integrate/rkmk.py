@@ -201,6 +201,10 @@ class _AbstractRKMK(diffrax.AbstractSolver):
     # Run the stages as a lax.scan (compile the vector field once, not once per stage):
     # worth it for large vector fields, e.g. autodiff-derived multibody dynamics.
     scan_stages: bool = eqx.field(default=False, static=True)
+    # False promises that the vector field has no jumps (no jump_ts): the FSAL stage
+    # is then always reused. Under vmap a lax.cond runs both branches, so this saves
+    # one vector-field evaluation per step in batches.
+    jumps: bool = eqx.field(default=True, static=True)
     _stages_scanned = _stages_scanned
 
     def order(self, terms):
@@ -218,10 +222,12 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
-        if tab.fsal:
+        if tab.fsal and self.jumps:
             f0 = jax.lax.cond(
                 made_jump, lambda: terms.vf(t0, y0, args), lambda: solver_state
             )
+        elif tab.fsal:
+            f0 = solver_state
         else:
             f0 = terms.vf(t0, y0, args)
         if self.scan_stages:
