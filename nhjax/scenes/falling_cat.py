@@ -74,6 +74,7 @@ __all__ = [
     "FallingCatAttitudes",
     "FallingCatKinematic",
     "FallingCatLagrangian",
+    "FallingCatSmooth",
     "ShapeLoopTorque",
 ]
 
@@ -345,6 +346,77 @@ class FallingCatKinematic(_CatGeometry, AbstractSystem):
         """Integrand of (4.8): (1/2) a_ij u^i u^j = I1 [(1 + B s^2) u1^2 + lam s^2/D u2^2]."""
         s = jnp.sin(x[0])
         return self.I1 * ((1 + self.B * s * s) * u[0] ** 2 + self.lam * s * s / self.D(x[0]) * u[1] ** 2)
+
+
+class FallingCatSmooth(_CatGeometry, AbstractSystem):
+    """Velocity-controlled cat in coordinates that are smooth at the straight cat.
+
+    Shape: w = theta (cos chi, sin chi) in R^2 (the shape space RP^2 near theta = 0;
+    |w| = theta); fiber: phi = psi + chi (the attitude of the straight cat about e2).
+    With u = w' [rad/s] (inputs) the connection psi' = -f chi' becomes
+
+        phi' = k(theta^2) (w1 u2 - w2 u1),   k = (1 - f(theta)) / theta^2,
+
+    and the vibrational metric (7.3) becomes 2 I1 (a |u|^2 + b (w . u)^2) with
+    a = lam s^2 / (D theta^2), b = ((1 + B s^2) - a) / theta^2 (s = sin theta). All
+    three are even, smooth functions of theta^2, evaluated through series-guarded
+    sinc-type functions (exact at theta = 0):
+
+        k = (lam cosc + (1 - lam) sinc^2) / D,     a = lam sinc^2 / D,
+        b = B sinc^2 + (lam sinc3 (1 + sinc) + (1 - lam) sinc^2) / D,
+        D = lam + (1 - lam) theta^2 sinc^2,
+
+    with sinc = sin(theta)/theta, cosc = (1 - cos theta)/theta^2, sinc3 =
+    (theta - sin theta)/theta^3. A motion whose shape returns (w(T) = w(0)) turns
+    the cat about e2 by phi(T) - phi(0) (mod 2 pi); the winding of w about the
+    origin is the number of twists chi made. No chart guard: paths may cross theta = 0.
+
+    State (w1, w2, phi) [rad]; inputs (w1', w2') [rad/s].
+    """
+
+    state_names: ClassVar[tuple] = ("w1", "w2", "phi")
+    control_dim: ClassVar[int] = 2
+
+    def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0):
+        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
+        self.mass = jnp.asarray(mass, float)
+        self.chart_eps = 0.0
+
+    def coefficients(self, w):
+        """(k, a, b) at shape w (see the class docstring)."""
+        from ..lie import _series as S
+
+        t2 = w @ w
+        sc, cc, s3 = S.sinc(t2), S.cosc(t2), S.sinc3(t2)
+        lam = self.lam
+        D = lam + (1 - lam) * t2 * sc * sc
+        k = (lam * cc + (1 - lam) * sc * sc) / D
+        a = lam * sc * sc / D
+        b = self.B * sc * sc + (lam * s3 * (1 + sc) + (1 - lam) * sc * sc) / D
+        return k, a, b
+
+    def vector_field(self, t, x, u):
+        k, _, _ = self.coefficients(x[:2])
+        return jnp.stack([u[0], u[1], k * (x[0] * u[1] - x[1] * u[0])])
+
+    def vibrational_power(self, x, u):
+        """Integrand of (4.8) in these coordinates: I1 (a |u|^2 + b (w . u)^2)."""
+        _, a, b = self.coefficients(x[:2])
+        return self.I1 * (a * u @ u + b * (x[:2] @ u) ** 2)
+
+    def guards(self, x):
+        return {}
+
+    @staticmethod
+    def from_chart(theta, chi, psi):
+        """(w1, w2, phi) from Iwai's (theta, chi, psi)."""
+        return jnp.stack([theta * jnp.cos(chi), theta * jnp.sin(chi), psi + chi])
+
+    @staticmethod
+    def winding(ws):
+        """Number of turns of a path ws (N, 2) about the origin (chi's total advance / 2 pi)."""
+        ang = jnp.unwrap(jnp.arctan2(ws[:, 1], ws[:, 0]))
+        return (ang[-1] - ang[0]) / (2 * jnp.pi)
 
 
 class FallingCatAttitudes(_CatGeometry, AbstractSystem):
