@@ -2,6 +2,7 @@
 holonomy, zero angular momentum in 3-D, work-energy balance, RKMK attitudes,
 gradients, and the singular chart."""
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -147,7 +148,11 @@ def test_zero_angular_momentum_in_3d_and_work_energy(torque_run):
     assert abs(float(tr["psi"][-1])) > 1.0
     assert float(tr.invariant_drift["energy - work"]) < 1e-9
     assert float(jnp.max(tr.work) - jnp.min(tr.work)) > 1e-3
-    # and with the engine's equations the same motion comes out
+
+
+@pytest.mark.slow
+def test_engine_equations_give_the_same_motion(torque_run):
+    cat, tr = torque_run
     eng = FallingCat(equations="engine")
     tr2 = nhjax.simulate(eng, tr.xs[0], 10.0, control=TORQUE, rtol=1e-12, atol=1e-12, saveat=101)
     np.testing.assert_allclose(tr2.xs, tr.xs, atol=1e-9)
@@ -170,22 +175,29 @@ def test_rkmk_attitudes_reconstruct_the_chart(torque_run):
 
 
 def test_gradient_of_turn_matches_fd_and_closed_form():
+    """Forward-mode derivative of the achieved turn in the loop parameters (theta0, theta1,
+    t_twist) against central differences and against -2 pi F12(theta1)."""
     cat = FallingCat()
 
     def turn(p):
         loop = ShapeLoopTorque(cat, theta0=p[0], theta1=p[1], windings=1.0, t_twist=p[2])
-        tr = nhjax.simulate(cat, cat.initial_state(p[0]), loop.duration, control=loop,
-                            rtol=1e-11, atol=1e-11, saveat=2)
+        tr = nhjax.simulate(cat, cat.initial_state(p[0]), loop.duration, control=loop, rtol=1e-11,
+                            atol=1e-11, saveat=2, adjoint=diffrax.ForwardMode(), diagnostics=False)
         return tr.xs[-1, 2]
 
     p = jnp.array([0.2, 0.7, 2.5])
-    g = jax.grad(turn)(p)
+    g = jax.jacfwd(turn)(p)
     h = 1e-5
     fd = np.array([(turn(p + h * e) - turn(p - h * e)) / (2 * h) for e in np.eye(3)])
     np.testing.assert_allclose(g, fd, atol=1e-6)
     np.testing.assert_allclose(g[1], -2 * np.pi * float(cat.curvature(0.7)), rtol=1e-7)
 
-    # a motion whose turn depends on everything: sinusoidal torques, gradient in amplitudes
+
+@pytest.mark.slow
+def test_gradient_in_torque_amplitudes_matches_fd():
+    """A motion whose turn depends on everything: sinusoidal torques, gradient in amplitudes."""
+    cat, h = FallingCat(), 1e-5
+
     def psi_end(amp):
         ctrl = nhjax.Sinusoids(TORQUE.offset, amp, TORQUE.omega, TORQUE.phase)
         tr = nhjax.simulate(cat, cat.initial_state(0.8, chi_dot=0.5), 10.0, control=ctrl,
@@ -218,9 +230,16 @@ def test_inconsistent_initial_conditions():
     q, qd = jnp.array([0.7, 0.0, 0.0]), jnp.array([0.1, 1.0, 0.0])  # psi' should be -f chi'
     with pytest.raises(nhjax.ConstraintViolationError, match="velocity"):
         nhjax.simulate(lag, jnp.concatenate([q, qd]), 1.0)
-    tr = nhjax.simulate(lag, jnp.concatenate([q, qd]), 1.0, project=True, rtol=1e-10, atol=1e-10)
-    x0 = tr.xs[0]
+    x0 = lag.project(0.0, jnp.concatenate([q, qd]))
     np.testing.assert_allclose(x0[5], -float(lag.f(0.7)) * x0[4], rtol=1e-12)
+    np.testing.assert_allclose(lag.angular_momentum_3d(x0[:3], x0[3:]), 0.0, atol=1e-15)
+
+
+@pytest.mark.slow
+def test_projected_start_stays_consistent():
+    lag = FallingCatLagrangian(0.1, 0.3, 2.0)
+    x = jnp.array([0.7, 0.0, 0.0, 0.1, 1.0, 0.0])
+    tr = nhjax.simulate(lag, x, 1.0, project=True, rtol=1e-10, atol=1e-10)
     assert float(tr.constraint_drift["velocity"]) < 1e-9
     for k in ("angular_momentum_x", "angular_momentum_z"):
         assert float(tr.invariant_drift[k]) < 1e-12

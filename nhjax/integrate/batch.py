@@ -31,7 +31,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from ..errors import NhjaxError
-from .simulate import _configure, _initial_report, _solve
+from .simulate import _configure, _drifting_constraints, _initial_report, _solve
 
 __all__ = ["BatchError", "simulate_batch", "stack"]
 
@@ -136,10 +136,11 @@ def simulate_batch(
     jump_ts=None,
     adjoint=None,
     project: bool = False,
-    project_steps: bool = False,
+    project_steps: bool | None = None,
     constraint_tol: float = 1e-8,
     on_guard: str = "raise",
     track_work: bool | None = None,
+    diagnostics: bool = True,
 ):
     """Simulate a batch of trajectories; returns a ``Trajectory`` whose arrays have a
     leading batch axis (``traj.xs[i]`` is member i's saved states).
@@ -183,6 +184,7 @@ def simulate_batch(
         saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps,
         stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
         project_steps=project_steps, track_work=track_work, progress=False,
+        diagnostics=diagnostics,
     )
     t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
     # Memory: the saved states of the whole batch must fit.
@@ -226,6 +228,9 @@ def simulate_batch(
         _, finite, residuals, guards, margins = _report_chunk(s, x, c, t0a, project, axes)
         finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
         guard_names = tuple(guards)
+        if project_steps is None:
+            project_steps = _drifting_constraints(residuals)
+            options["project_steps"] = project_steps
         for j in range(min(chunk, B - lo)):
             reason = None
             if not finite[j]:

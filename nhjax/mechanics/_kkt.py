@@ -3,6 +3,7 @@ projection, and the regularity conditions of constrained mechanics."""
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -17,9 +18,15 @@ def kkt_accelerations(M, rhs, A, b):
 
 
 def metric_projection(M, A, residual):
-    """The correction dv, smallest in the metric M, with A dv = -residual."""
-    MinvAT = jnp.linalg.solve(M, A.T)
-    return -MinvAT @ jnp.linalg.solve(A @ MinvAT, residual)
+    """The correction dv, smallest in the metric M, with A dv = -residual.
+
+    Solved as the KKT system [[M, A^T], [A, 0]] (dv, mu) = (0, -residual), which
+    needs M positive definite only on ker A (as for quaternion coordinates, whose
+    kinetic metric is degenerate along p).
+    """
+    n, m = M.shape[0], A.shape[0]
+    K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
+    return jnp.linalg.solve(K, jnp.concatenate([jnp.zeros(n, M.dtype), -residual]))[:n]
 
 
 def regularity_margins(M, A):
@@ -50,3 +57,17 @@ REGULARITY_HINTS = {
         "mass matrix is singular): some admissible motion carries no inertia"
     ),
 }
+
+
+def newton_project(phi, x, iterations=4):
+    """Minimum-norm Newton steps onto {phi = 0}: x <- x - A^T (A A^T)^-1 phi(x), A = dphi/dx.
+
+    From a state within a step's local error of the manifold this converges
+    quadratically; a fixed number of iterations keeps it jit- and vmap-friendly.
+    """
+    def step(_, x):
+        r = phi(x)
+        A = jax.jacfwd(phi)(x)
+        return x - A.T @ jnp.linalg.solve(A @ A.T, r)
+
+    return jax.lax.fori_loop(0, iterations, step, x)

@@ -29,9 +29,14 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 
-from ._kkt import REGULARITY_HINTS, kkt_accelerations, metric_projection, regularity_margins
+from ._kkt import (
+    REGULARITY_HINTS,
+    kkt_accelerations,
+    metric_projection,
+    newton_project,
+    regularity_margins,
+)
 from .system import AbstractSystem
 
 __all__ = ["ConstrainedLagrangian", "Lagrangian"]
@@ -171,19 +176,12 @@ class ConstrainedLagrangian(AbstractSystem):
         return jnp.dot(self.generalized_force(t, q, qd, u), qd)
 
     def project(self, t, x):
-        """Nearest consistent state: Newton on phi(q) = 0 (optimistix), then the
+        """Nearest consistent state: minimum-norm Newton on phi(q) = 0, then the
         kinetic-metric projection of q' onto A_all q' + a = 0."""
         q, qd = self.split(x)
         phi0 = jnp.atleast_1d(self.position_constraints(t, q))
         if phi0.shape[0]:
-            # Minimum-norm Newton (Gauss–Newton on an underdetermined system).
-            sol = optx.least_squares(
-                lambda qq, _: self.position_constraints(t, qq),
-                optx.GaussNewton(rtol=1e-14, atol=1e-14),
-                q,
-                max_steps=50,
-            )
-            q = sol.value
+            q = newton_project(lambda qq: jnp.atleast_1d(self.position_constraints(t, qq)), q)
         A = self.constraint_jacobian(t, q)
         if A.shape[0]:
             r = self._all_velocity_constraints(t, q, qd)

@@ -30,10 +30,15 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import optimistix as optx
 
 from ..lie.spaces import Euclidean
-from ._kkt import REGULARITY_HINTS, kkt_accelerations, metric_projection, regularity_margins
+from ._kkt import (
+    REGULARITY_HINTS,
+    kkt_accelerations,
+    metric_projection,
+    newton_project,
+    regularity_margins,
+)
 from .system import AbstractSystem
 
 __all__ = ["LieLagrangian"]
@@ -188,17 +193,13 @@ class LieLagrangian(AbstractSystem):
         return self.generalized_force(t, g, v, u) @ v
 
     def project(self, t, y):
-        """Gauss–Newton on phi(g exp(e)) = 0 (optimistix), then the metric projection of v."""
+        """Minimum-norm Newton on phi(g exp(e)) = 0 in the algebra, then the metric
+        projection of v."""
         g, v = y
         n = v.shape[0]
         if jnp.atleast_1d(self.position_constraints(t, g)).shape[0]:
-            sol = optx.least_squares(
-                lambda e, _: jnp.atleast_1d(self.position_constraints(t, self.retract(g, e))),
-                optx.GaussNewton(rtol=1e-14, atol=1e-14),
-                jnp.zeros(n),
-                max_steps=50,
-            )
-            g = self.retract(g, sol.value)
+            phi = lambda e: jnp.atleast_1d(self.position_constraints(t, self.retract(g, e)))  # noqa: E731
+            g = self.retract(g, newton_project(phi, jnp.zeros(n)))
         A = self.constraint_jacobian(t, g)
         if A.shape[0]:
             r = self._all_velocity_constraints(t, g, v)
