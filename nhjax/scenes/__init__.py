@@ -6,12 +6,17 @@ from .falling_cat import (
     FallingCatAttitudes,
     FallingCatKinematic,
     FallingCatLagrangian,
+    FallingCatSmooth,
     ShapeLoopTorque,
 )
+from .ball_on_platter import BallOnPlatter
+from .rolling_disk import RollingDisk, RollingDiskQuaternion
 from .shell_suslov_hinge import ShellWithSuslovHinge, ShellWithSuslovHingeZeroMomentum
 from .shell_with_top import ShellWithTopLagrangian, ShellWithTopReduced
 from .spherical_robot import ShellWithTop
+from .skate import Skate, SkateSE2
 from .suslov_bundle import SuslovBundle
+from .two_wheeled_cart import TwoWheeledCart
 
 # name -> (class, one-line description); used by `nhjax list`.
 REGISTRY = {
@@ -19,6 +24,13 @@ REGISTRY = {
     "FallingCatKinematic": (FallingCatKinematic, "the same cat under velocity control (seed 000, 7.1)"),
     "FallingCatAttitudes": (FallingCatAttitudes, "the torque-driven cat with both attitudes on SO(3) (RKMK)"),
     "FallingCatLagrangian": (FallingCatLagrangian, "the cat derived by the engine from two rigid bodies"),
+    "FallingCatSmooth": (FallingCatSmooth, "velocity-controlled cat in coordinates smooth at the straight cat (w, phi)"),
+    "Skate": (Skate, "knife-edge skate on an inclined plane, DAE in R^6 with closed-form motions (seed 002, 9.1-9.3)"),
+    "SkateSE2": (SkateSE2, "the same skate on SE(2) (Hamel equations, RKMK)"),
+    "BallOnPlatter": (BallOnPlatter, "homogeneous ball on a rotating platter in R^3 x S^3, exact circular path (seed 002, 9.14-9.19)"),
+    "RollingDisk": (RollingDisk, "sharp-edged rolling disk in minimal coordinates, tilt guard, circular motions (seed 002, 9.37-9.44)"),
+    "RollingDiskQuaternion": (RollingDiskQuaternion, "the same disk as a rigid body in (u, p) in R^3 x S^3 (seed 002, 9.39-9.40)"),
+    "TwoWheeledCart": (TwoWheeledCart, "two-wheeled cart on an inclined plane, closed-form motion and cusps (seed 002, 9.45-9.52)"),
     "ShellWithTop": (ShellWithTop, "the spherical robot: shell rolling on a plane, top inside, internal torque; on SO(3) x SO(3) (seed 003, sec. 1)"),
     "ShellWithTopReduced": (ShellWithTopReduced, "the same without torque: reduced system (1.11) + reconstruction (seed 003, sec. 1)"),
     "ShellWithTopLagrangian": (ShellWithTopLagrangian, "the same derived by the engine in rotation-vector coordinates, with internal torque"),
@@ -28,16 +40,23 @@ REGISTRY = {
 }
 
 __all__ = [
+    "BallOnPlatter",
     "FallingCat",
     "FallingCatAttitudes",
     "FallingCatKinematic",
     "FallingCatLagrangian",
+    "FallingCatSmooth",
     "REGISTRY",
+    "RollingDisk",
+    "RollingDiskQuaternion",
     "ShapeLoopTorque",
     "ShellWithSuslovHinge",
     "ShellWithSuslovHingeZeroMomentum",
     "ShellWithTop",
     "ShellWithTopLagrangian",
     "ShellWithTopReduced",
+    "Skate",
+    "SkateSE2",
     "SuslovBundle",
+    "TwoWheeledCart",
 ]
