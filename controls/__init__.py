@@ -1,10 +1,27 @@
-"""Optimal control on nhjax systems (gradient-based and Pontryagin).
+"""Optimal control on nhjax systems: direct (optax through differentiable
+simulations, single or multiple shooting, augmented Lagrangian) and indirect
+(Pontryagin, costate shooting on optimistix), with a residual check of the
+optimality conditions that applies to any solution."""
 
-Not implemented yet: this package is reserved for the optimal-control solvers
-(issue #5). nhjax.simulate already accepts parametrized, differentiable
-controls (``nhjax.Sinusoids``, ``nhjax.PiecewiseLinear``, ...), and
-``jax.grad`` through simulate() works, which is what the direct methods here
-will build on.
-"""
+from .direct import DirectResult, solve_direct
+from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
+from .pontryagin import HamiltonianSystem, IndirectResult, continuation, pmp_residual, solve_pontryagin
+from .problem import OCP, ProblemError, rollout
 
-__all__: list[str] = []
+__all__ = [
+    "Chebyshev",
+    "CubicSpline",
+    "DirectResult",
+    "Fourier",
+    "HamiltonianSystem",
+    "IndirectResult",
+    "OCP",
+    "PiecewiseConstant",
+    "PiecewiseLinear",
+    "ProblemError",
+    "continuation",
+    "pmp_residual",
+    "rollout",
+    "solve_direct",
+    "solve_pontryagin",
+]

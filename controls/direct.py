@@ -1,0 +1,315 @@
+"""Direct methods: optimize control parameters through differentiable simulations.
+
+Single shooting: the parameters p of a control parametrization define u(t);
+one simulate() gives the cost J(p) and the terminal residual psi(p), and jax
+gives their gradients (diffrax's recursive-checkpoint adjoint).
+
+Multiple shooting: the horizon is cut into S segments; the unknowns are the
+control parameters and the states at the segment starts; segments are solved
+in parallel (vmap), and continuity defects join the terminal constraints.
+
+Constraints are handled by an augmented Lagrangian (Hestenes–Powell):
+
+    minimize_p  J(p) + lam . c(p) + rho/2 |c(p)|^2,   then  lam <- lam + rho c,
+
+with rho increased when the violation does not fall fast enough. The inner
+problems run L-BFGS (optax's direction, a projected Armijo backtracking search on
+the compiled merit and gradient) by default, or Adam, or any optax
+transformation, with box bounds by projection. Convergence needs both
+the constraint violation below ``ctol`` and the relative cost change below
+``ftol``; ``history`` records every inner step.
+
+Everything compiled here is a module-level function of the problem's pytree,
+so solving the same problem again with other numbers (a new target, a new
+guess, the next continuation step) reuses the compiled code.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+import nhjax
+
+from .problem import OCP, CostAugmented, ProblemError, _OnState, rollout
+
+__all__ = ["DirectResult", "solve_direct"]
+
+
+@dataclasses.dataclass
+class DirectResult:
+    params: jax.Array
+    control: object
+    cost: float
+    violation: float
+    multipliers: np.ndarray
+    iterations: int
+    converged: bool
+    message: str
+    history: dict
+    seconds: float
+    node_states: object = None
+
+
+class _Transcription(eqx.Module):
+    """The problem, its parametrization and the solve settings, as one pytree."""
+
+    ocp: OCP
+    param: object
+    rtol: jax.Array
+    atol: jax.Array
+    segments: int = eqx.field(static=True)
+
+    @property
+    def n_ctrl(self):
+        return self.param.size
+
+    def pieces(self, z):
+        """(cost, constraints) at the decision vector z."""
+        if self.segments == 1:
+            # A trial control that drives the state out of its chart (a guard) gets an
+            # infinite cost: line searches back off instead of the solve failing.
+            traj, J, psi = rollout(self.ocp, self.param.signal(z), rtol=self.rtol, atol=self.atol,
+                                   on_guard="stop")
+            return jnp.where(traj.t_final < self.ocp.T, jnp.inf, J), psi
+        ocp, S = self.ocp, self.segments
+        n = ocp.x0.shape[0]
+        control = self.param.signal(z[: self.n_ctrl])
+        nodes = jnp.concatenate([ocp.x0[None], z[self.n_ctrl:].reshape(S - 1, n)])
+        edges = jnp.linspace(0.0, ocp.T, S + 1)
+        aug = CostAugmented(ocp.system, ocp.running_cost)
+
+        def seg(xs, ta, tb):
+            tr = nhjax.simulate(aug, (xs, jnp.zeros(())), tb, t0=ta, control=_OnState(control),
+                                rtol=self.rtol, atol=self.atol, saveat=2, track_work=False,
+                                on_guard="stop", diagnostics=False)
+            return tr.xs[0][-1], jnp.where(tr.t_final < tb, jnp.inf, tr.xs[1][-1])
+
+        ends, costs = jax.vmap(seg)(nodes, edges[:-1], edges[1:])
+        phi, psi = ocp.terminal(ends[-1])
+        return phi + jnp.sum(costs), jnp.concatenate([psi, (ends[:-1] - nodes[1:]).reshape(-1)])
+
+    def merit(self, z, lam, rho):
+        J, c = self.pieces(z)
+        return J + lam @ c + 0.5 * rho * c @ c
+
+
+@eqx.filter_jit
+def _pieces(tr, z):
+    return tr.pieces(z)
+
+
+@eqx.filter_jit
+def _merit_and_grad(tr, z, lam, rho):
+    """The augmented-Lagrangian merit and its gradient: the one compiled reverse pass
+    (lam and rho are arrays, so new multipliers do not recompile)."""
+    return jax.value_and_grad(tr.merit)(z, lam, rho)
+
+
+@eqx.filter_jit
+def _direction(opt, grad, state, z):
+    return opt.update(grad, state, z)
+
+
+_LBFGS = optax.scale_by_lbfgs()
+_ADAM = optax.adam(1e-2)
+
+
+def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, history, outer):
+    """L-BFGS (optax's two-loop direction) with a projected backtracking Armijo search.
+
+    The line search runs in Python on the compiled merit-and-gradient, so only one
+    reverse pass is ever compiled (optax.lbfgs's zoom search traces the solve again
+    inside its own loop, which costs several times the compile time). A step whose
+    curvature s.y is not positive resets the memory, keeping the direction a descent
+    direction; a trial that stops on a guard (infinite merit) is backtracked."""
+    state = _LBFGS.init(z)
+    for _ in range(max_inner):
+        d, new_state = _direction(_LBFGS, grad, state, z)
+        slope = float(grad @ d)
+        if not slope > 0:  # not a descent direction: restart from the gradient
+            state = _LBFGS.init(z)
+            d, new_state = _direction(_LBFGS, grad, state, z)
+            slope = float(grad @ d)
+        eta, accepted = 1.0, False
+        for _ in range(40):
+            z_new = jnp.clip(z - eta * d, lo, hi)
+            v_new, g_new = _merit_and_grad(tr, z_new, lam, rho)
+            v_new = float(v_new)
+            if np.isfinite(v_new) and v_new <= value - 1e-4 * float(grad @ (z - z_new)):
+                accepted = True
+                break
+            eta *= 0.3 if not np.isfinite(v_new) else 0.5
+        if not accepted:
+            break
+        s_k, y_k = z_new - z, g_new - grad
+        state = new_state if float(s_k @ y_k) > 0 else _LBFGS.init(z_new)
+        prev, z, value, grad = value, z_new, v_new, g_new
+        gnorm = float(jnp.linalg.norm(grad))
+        history["merit"].append(value)
+        history["grad_norm"].append(gnorm)
+        history["outer"].append(outer)
+        if gnorm < gtol or abs(prev - value) <= 1e-2 * ftol * max(1.0, abs(value)):
+            break
+    return z
+
+
+@eqx.filter_jit
+def _first_order_step(tr, opt, z, state, lam, rho, lo, hi):
+    value, grad = jax.value_and_grad(tr.merit)(z, lam, rho)
+    updates, state = opt.update(grad, state, z)
+    return jnp.clip(optax.apply_updates(z, updates), lo, hi), state, value, jnp.linalg.norm(grad)
+
+
+def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, history, outer):
+    state, prev = opt.init(z), np.inf
+    for _ in range(max_inner):
+        z, state, val, gnorm = _first_order_step(tr, opt, z, state, lam, rho, lo, hi)
+        val, gnorm = float(val), float(gnorm)
+        history["merit"].append(val)
+        history["grad_norm"].append(gnorm)
+        history["outer"].append(outer)
+        if gnorm < gtol or abs(prev - val) <= 1e-2 * ftol * max(1.0, abs(val)):
+            break
+        prev = val
+    return z
+
+
+def solve_direct(
+    ocp: OCP,
+    param,
+    guess=None,
+    *,
+    shooting: str = "single",
+    segments: int = 8,
+    optimizer: str | optax.GradientTransformation = "lbfgs",
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    ctol: float = 1e-8,
+    ftol: float = 1e-10,
+    gtol: float = 1e-9,
+    max_outer: int = 30,
+    max_inner: int = 300,
+    rho: float = 10.0,
+    progress: bool = False,
+) -> DirectResult:
+    """Solve ``ocp`` over the parameters of ``param`` (a controls.parametrize object).
+
+    guess : initial control parameters (default zeros); for multiple shooting the
+        node states start on the simulated guess.
+    optimizer : "lbfgs", "adam", or an optax transformation (reuse one object across
+        calls: a new object compiles anew).
+    """
+    if param.dim != ocp.system.control_dim:
+        raise ProblemError(
+            f"the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
+            f"{ocp.system.control_dim}"
+        )
+    if shooting not in ("single", "multiple"):
+        raise ProblemError("shooting must be 'single' or 'multiple'")
+    if shooting == "multiple" and (not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1):
+        raise ProblemError("multiple shooting needs a vector state")
+    t_start = time.perf_counter()
+    p0 = jnp.zeros(param.size) if guess is None else jnp.asarray(guess, float)
+    if p0.shape != (param.size,):
+        raise ProblemError(f"guess has shape {p0.shape}, the parametrization takes ({param.size},)")
+    S = segments if shooting == "multiple" else 1
+    tr = _Transcription(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float), S)
+    z = p0
+    if S > 1:
+        traj, _, _ = rollout(ocp, param.signal(p0), rtol=rtol, atol=atol, saveat=S + 1)
+        z = jnp.concatenate([p0, traj.xs[0][1:-1].reshape(-1)])
+    lo, hi = jnp.full(z.shape, -jnp.inf), jnp.full(z.shape, jnp.inf)
+    if ocp.u_lower is not None:
+        plo, phi = param.param_bounds(ocp.u_lower, ocp.u_upper)
+        lo, hi = lo.at[: param.size].set(plo), hi.at[: param.size].set(phi)
+        z = jnp.clip(z, lo, hi)
+
+    J0, c0 = _pieces(tr, z)
+    for name, val in (("cost", J0), ("terminal constraints", c0)):
+        if not bool(jnp.all(jnp.isfinite(val))):
+            raise ProblemError(
+                f"the {name} is not finite at the initial guess (the guess may drive the "
+                "state out of its chart, e.g. through a singular configuration)"
+            )
+    m = c0.shape[0]
+    # gradient of J + w.c + |c|^2/2 for random weights w: finite and not zero unless the
+    # cost and constraints are non-differentiable or do not depend on the parameters
+    w = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, m))
+    _check_differentiable(_merit_and_grad(tr, z, w, jnp.asarray(1.0, float))[1])
+    lam = jnp.zeros(m)
+    if isinstance(optimizer, str):
+        if optimizer not in ("lbfgs", "adam"):
+            raise ProblemError("optimizer must be 'lbfgs', 'adam' or an optax transformation")
+        opt = _ADAM if optimizer == "adam" else None
+    else:
+        opt = optimizer
+
+    history = {"outer": [], "cost": [], "violation": [], "merit": [], "grad_norm": []}
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=max_outer, desc="direct (augmented Lagrangian)")
+    J_prev, viol_prev, converged, msg = np.inf, np.inf, False, "max_outer reached"
+    J, viol = float(J0), float(jnp.max(jnp.abs(c0))) if m else 0.0
+    for outer in range(1, max_outer + 1):
+        rho_a = jnp.asarray(rho, float)  # arrays: new values do not recompile
+        if opt is None:
+            value, grad = _merit_and_grad(tr, z, lam, rho_a)
+            z = _lbfgs_inner(tr, z, lam, rho_a, lo, hi, float(value), grad, max_inner, ftol, gtol,
+                             history, outer)
+        else:
+            z = _first_order_inner(tr, opt, z, lam, rho_a, lo, hi, max_inner, ftol, gtol, history, outer)
+        Jc, c = _pieces(tr, z)
+        J, viol = float(Jc), float(jnp.max(jnp.abs(c))) if m else 0.0
+        history["cost"].append(J)
+        history["violation"].append(viol)
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(cost=f"{J:.6g}", violation=f"{viol:.1e}")
+        if not np.isfinite(J):
+            raise ProblemError("the cost became non-finite during the optimization")
+        if viol < ctol and abs(J - J_prev) <= ftol * max(1.0, abs(J)):
+            converged, msg = True, "converged: constraints and cost change within tolerance"
+            break
+        if m:
+            lam = lam + rho * c
+            if viol > 0.25 * viol_prev:
+                rho *= 10.0
+        J_prev, viol_prev = J, viol
+    if bar is not None:
+        bar.close()
+    if not converged and m and min(history["violation"]) > 1e3 * ctol:
+        msg = (
+            "the terminal constraints could not be met (violation stays at "
+            f"{min(history['violation']):.2e}): the target may be unreachable within the "
+            "control bounds or the horizon"
+        )
+    p = z[: param.size]
+    nodes = z[param.size:].reshape(S - 1, -1) if S > 1 else None
+    return DirectResult(
+        params=p, control=param.signal(p), cost=J, violation=viol, multipliers=np.asarray(lam),
+        iterations=len(history["merit"]), converged=converged, message=msg, history=history,
+        seconds=time.perf_counter() - t_start, node_states=nodes,
+    )
+
+
+def _check_differentiable(jac):
+    if not bool(jnp.all(jnp.isfinite(jac))):
+        raise ProblemError(
+            "the cost or the terminal constraints have a non-finite derivative at the initial "
+            "guess: use differentiable (smooth) cost and constraint functions"
+        )
+    if float(jnp.max(jnp.abs(jac))) == 0.0:
+        raise ProblemError(
+            "neither the cost nor the constraints depend on the control parameters (zero "
+            "gradient): they are constant, or not differentiable where it matters (e.g. "
+            "built from rounding or comparisons)"
+        )

@@ -1,0 +1,183 @@
+"""Control parametrizations: a flat parameter vector <-> a control signal u(t).
+
+Each parametrization knows its number of parameters, builds the control
+``signal(params)`` (an equinox module callable as u(t, x), differentiable in the
+parameters), maps control bounds to parameter bounds where that is exact, and
+fits its parameters to a given function of time (for initial guesses).
+
+* ``PiecewiseConstant(n, T, dim)``: n equal intervals on [0, T].
+* ``PiecewiseLinear(n, T, dim)``: n + 1 equally spaced knots.
+* ``CubicSpline(n, T, dim)``: natural cubic spline through n + 1 knots.
+* ``Fourier(n, T, dim)``: a0 + sum_k a_k cos(2 pi k t/T) + b_k sin(2 pi k t/T), k <= n;
+  spectrally accurate for smooth periodic controls.
+* ``Chebyshev(n, T, dim)``: sum_{k <= n} c_k T_k(2 t/T - 1); spectrally accurate
+  for smooth controls that need not be periodic (most optimal controls).
+
+Bounds (u_lower <= u <= u_upper) are exact box constraints on the knots of the
+piecewise constant and linear parametrizations; the others reject bounds.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from nhjax.integrate.signals import PiecewiseConstant as _PC
+from nhjax.integrate.signals import PiecewiseLinear as _PL
+
+__all__ = ["Chebyshev", "CubicSpline", "Fourier", "Parametrization", "PiecewiseConstant", "PiecewiseLinear"]
+
+
+class Parametrization(eqx.Module):
+    n: int = eqx.field(static=True)
+    T: float = eqx.field(static=True)
+    dim: int = eqx.field(static=True)
+    t0: float = eqx.field(static=True, default=0.0)
+
+    @property
+    def size(self) -> int:
+        raise NotImplementedError
+
+    def signal(self, params):
+        raise NotImplementedError
+
+    def param_bounds(self, u_lower, u_upper):
+        raise ValueError(
+            f"{type(self).__name__} cannot impose control bounds exactly; use "
+            "PiecewiseConstant or PiecewiseLinear for a bounded control"
+        )
+
+    def sample_times(self):
+        """Times at which ``fit`` samples a target function."""
+        return np.linspace(self.t0, self.t0 + self.T, 4 * self.size // max(self.dim, 1) + 8)
+
+    def fit(self, u_fn):
+        """Least-squares parameters whose signal best matches u_fn(t) (shape (dim,))."""
+        ts = jnp.asarray(self.sample_times())
+        target = jax.vmap(u_fn)(ts).reshape(-1)
+        basis = jax.jacfwd(lambda p: jax.vmap(lambda t: self.signal(p)(t, None))(ts).reshape(-1))(
+            jnp.zeros(self.size)
+        )
+        offset = jax.vmap(lambda t: self.signal(jnp.zeros(self.size))(t, None))(ts).reshape(-1)
+        return jnp.linalg.lstsq(basis, target - offset)[0]
+
+    def _check(self, params):
+        params = jnp.asarray(params)
+        if params.shape != (self.size,):
+            raise ValueError(
+                f"{type(self).__name__}(n={self.n}, dim={self.dim}) takes {self.size} "
+                f"parameters, got shape {params.shape}"
+            )
+        return params
+
+
+class PiecewiseConstant(Parametrization):
+    @property
+    def size(self):
+        return self.n * self.dim
+
+    def signal(self, params):
+        params = self._check(params)
+        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
+        return _PC(ts, params.reshape(self.n, self.dim))
+
+    def param_bounds(self, u_lower, u_upper):
+        return jnp.tile(jnp.asarray(u_lower, float), self.n), jnp.tile(jnp.asarray(u_upper, float), self.n)
+
+
+class PiecewiseLinear(Parametrization):
+    @property
+    def size(self):
+        return (self.n + 1) * self.dim
+
+    def signal(self, params):
+        params = self._check(params)
+        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
+        return _PL(ts, params.reshape(self.n + 1, self.dim))
+
+    def param_bounds(self, u_lower, u_upper):
+        k = self.n + 1
+        return jnp.tile(jnp.asarray(u_lower, float), k), jnp.tile(jnp.asarray(u_upper, float), k)
+
+
+class _SplineSignal(eqx.Module):
+    ts: jax.Array
+    values: jax.Array  # (n+1, dim)
+    second: jax.Array  # (n+1, dim): second derivatives at the knots
+
+    def __call__(self, t, x=None):
+        h = self.ts[1] - self.ts[0]
+        i = jnp.clip(jnp.floor((t - self.ts[0]) / h).astype(int), 0, self.ts.shape[0] - 2)
+        a = (self.ts[i + 1] - t) / h
+        b = 1.0 - a
+        y0, y1 = self.values[i], self.values[i + 1]
+        m0, m1 = self.second[i], self.second[i + 1]
+        return a * y0 + b * y1 + ((a**3 - a) * m0 + (b**3 - b) * m1) * h**2 / 6.0
+
+
+class CubicSpline(Parametrization):
+    @property
+    def size(self):
+        return (self.n + 1) * self.dim
+
+    def signal(self, params):
+        params = self._check(params)
+        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
+        y = params.reshape(self.n + 1, self.dim)
+        h = self.T / self.n
+        n = self.n
+        # natural spline: M_0 = M_n = 0, tridiagonal system for the interior second derivatives
+        A = (jnp.diag(jnp.full(n - 1, 4.0)) + jnp.diag(jnp.ones(n - 2), 1) + jnp.diag(jnp.ones(n - 2), -1))
+        rhs = 6.0 / h**2 * (y[2:] - 2 * y[1:-1] + y[:-2])
+        inner = jnp.linalg.solve(A, rhs) if n > 1 else jnp.zeros((0, self.dim))
+        M = jnp.concatenate([jnp.zeros((1, self.dim)), inner, jnp.zeros((1, self.dim))])
+        return _SplineSignal(ts, y, M)
+
+
+class _FourierSignal(eqx.Module):
+    coeffs: jax.Array  # (2n+1, dim): a0, a1..an, b1..bn
+    omega: float = eqx.field(static=True)
+    t0: float = eqx.field(static=True)
+
+    def __call__(self, t, x=None):
+        n = (self.coeffs.shape[0] - 1) // 2
+        k = jnp.arange(1, n + 1)
+        ph = self.omega * k * (t - self.t0)
+        basis = jnp.concatenate([jnp.ones(1), jnp.cos(ph), jnp.sin(ph)])
+        return basis @ self.coeffs
+
+
+class Fourier(Parametrization):
+    @property
+    def size(self):
+        return (2 * self.n + 1) * self.dim
+
+    def signal(self, params):
+        params = self._check(params)
+        return _FourierSignal(params.reshape(2 * self.n + 1, self.dim), 2 * np.pi / self.T, self.t0)
+
+
+class _ChebyshevSignal(eqx.Module):
+    coeffs: jax.Array  # (n+1, dim)
+    t0: float = eqx.field(static=True)
+    T: float = eqx.field(static=True)
+
+    def __call__(self, t, x=None):
+        s = jnp.clip(2.0 * (t - self.t0) / self.T - 1.0, -1.0, 1.0)
+        n = self.coeffs.shape[0]
+        basis = [jnp.ones_like(s), s]
+        for _ in range(2, n):
+            basis.append(2 * s * basis[-1] - basis[-2])
+        return jnp.stack(basis[:n]) @ self.coeffs
+
+
+class Chebyshev(Parametrization):
+    @property
+    def size(self):
+        return (self.n + 1) * self.dim
+
+    def signal(self, params):
+        params = self._check(params)
+        return _ChebyshevSignal(params.reshape(self.n + 1, self.dim), self.t0, self.T)

@@ -1,0 +1,338 @@
+"""Indirect methods: Pontryagin's maximum principle and shooting on the costates.
+
+For  minimize Phi(x(T)) + int L dt,  x' = f(t, x, u),  psi(x(T)) = 0  (minimum
+convention, normal case), with the Hamiltonian
+
+    H(t, x, p, u) = L(t, x, u) + p . f(t, x, u)          (built by autodiff),
+
+an optimal control minimizes H pointwise, and (x, p) solve
+
+    x' = dH/dp = f,    p' = -dH/dx,    p(T) = dPhi/dx + (dpsi/dx)^T nu.
+
+u*(t, x, p): one Newton step on dH/du = 0 from u = 0 is exact when H is
+quadratic in u (control-affine dynamics with a quadratic running cost: every
+task here); ``u_star="newton"`` iterates for general H. Box bounds clip u*
+(exact when d2H/du2 is diagonal).
+
+Shooting: unknowns z = (p(0), nu); residuals (psi(x(T)), p(T) - dPhi/dx -
+(dpsi/dx)^T nu); solved with optimistix (Newton or Levenberg–Marquardt).
+Multiple shooting adds the (x, p) at interior nodes and their continuity.
+``continuation`` walks a parameter (e.g. the target turn from 0 to pi) with
+warm starts. ``pmp_residual`` checks the optimality conditions of any
+solution, also a direct one, by integrating the costate backwards along it.
+
+States must be vectors (Euclidean); group-valued states are handled by the
+direct methods.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+
+import nhjax
+from nhjax.mechanics import AbstractSystem
+
+from .problem import OCP, ProblemError
+
+__all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "solve_pontryagin"]
+
+
+class HamiltonianSystem(AbstractSystem):
+    """(x, p) under the optimal control u*(t, x, p): the state is concat(x, p)."""
+
+    ocp: OCP
+    u_star_method: str = "quadratic"
+
+    @property
+    def n(self):
+        return self.ocp.x0.shape[0]
+
+    def hamiltonian(self, t, x, p, u):
+        return self.ocp.running_cost(t, x, u) + p @ self.ocp.system.vector_field(t, x, u)
+
+    def u_star(self, t, x, p):
+        k = self.ocp.system.control_dim
+        Hu = jax.grad(self.hamiltonian, argnums=3)
+        Huu = jax.jacfwd(Hu, argnums=3)
+        u = jnp.zeros(k, x.dtype)
+        steps = 1 if self.u_star_method == "quadratic" else 20
+        for _ in range(steps):
+            u = u - jnp.linalg.solve(Huu(t, x, p, u), Hu(t, x, p, u))
+        if self.ocp.u_lower is not None:
+            u = jnp.clip(u, self.ocp.u_lower, self.ocp.u_upper)
+        return u
+
+    def vector_field(self, t, y, _u=None):
+        n = self.n
+        x, p = y[:n], y[n:]
+        u = self.u_star(t, x, p)
+        dx = self.ocp.system.vector_field(t, x, u)
+        dp = -jax.grad(self.hamiltonian, argnums=1)(t, x, p, u)
+        return jnp.concatenate([dx, dp])
+
+    def guards(self, y):
+        return self.ocp.system.guards(y[: self.n])
+
+
+@dataclasses.dataclass
+class IndirectResult:
+    p0: np.ndarray
+    nu: np.ndarray
+    cost: float
+    violation: float
+    residual: float
+    converged: bool
+    message: str
+    trajectory: object
+    controls: np.ndarray
+    seconds: float
+    iterations: int
+
+
+def _shoot(ham: HamiltonianSystem, rtol, atol, saveat=2, t0=0.0, t1=None, x0=None, p0=None):
+    y0 = jnp.concatenate([x0, p0])
+    # forward-mode adjoint: the shooting Jacobian is a jvp per unknown (Newton, LM)
+    return nhjax.simulate(ham, y0, ham.ocp.T if t1 is None else t1, t0=t0, rtol=rtol, atol=atol,
+                          saveat=saveat, track_work=False, adjoint=diffrax.ForwardMode(),
+                          diagnostics=False)
+
+
+def _terminal_residual(ocp, xT, pT, nu):
+    phi, psi = ocp.terminal(xT)
+    dphi = jax.grad(lambda x: ocp.terminal(x)[0])(xT)
+    dpsi = jax.jacfwd(lambda x: ocp.terminal(x)[1])(xT) if psi.shape[0] else jnp.zeros((0, xT.shape[0]))
+    return jnp.concatenate([psi, pT - dphi - dpsi.T @ nu])
+
+
+class _Shooting(eqx.Module):
+    """Shooting residuals as a pytree (so optimistix compiles them once per problem structure)."""
+
+    ham: HamiltonianSystem
+    rtol: jax.Array
+    atol: jax.Array
+    segments: int = eqx.field(static=True)
+
+    def residual(self, z):
+        ocp = self.ham.ocp
+        n, m, S = ocp.x0.shape[0], ocp.n_constraints, self.segments
+        if S == 1:
+            yT = _shoot(self.ham, self.rtol, self.atol, x0=ocp.x0, p0=z[:n]).xs[-1]
+            return _terminal_residual(ocp, yT[:n], yT[n:], z[n:])
+        edges = jnp.linspace(0.0, ocp.T, S + 1)
+        nodes = jnp.concatenate([jnp.concatenate([ocp.x0, z[:n]])[None], z[n + m:].reshape(S - 1, 2 * n)])
+        ends = jax.vmap(
+            lambda y, a, b: _shoot(self.ham, self.rtol, self.atol, t0=a, t1=b, x0=y[:n], p0=y[n:]).xs[-1]
+        )(nodes, edges[:-1], edges[1:])
+        yT = ends[-1]
+        return jnp.concatenate([_terminal_residual(ocp, yT[:n], yT[n:], z[n:n + m]),
+                                (ends[:-1] - nodes[1:]).reshape(-1)])
+
+
+def _residual_fn(z, shooting):
+    return shooting.residual(z)
+
+
+_ROOT_SOLVERS = {}
+
+
+def _root_solver(name, tol):
+    key = (name, tol)
+    if key not in _ROOT_SOLVERS:
+        if name == "newton":
+            _ROOT_SOLVERS[key] = optx.Newton(rtol=tol, atol=tol)
+        elif name == "lm":
+            _ROOT_SOLVERS[key] = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+        else:
+            raise ProblemError("solver must be 'newton' or 'lm'")
+    return _ROOT_SOLVERS[key]
+
+
+@eqx.filter_jit
+def _residual_max(shooting, z):
+    return jnp.max(jnp.abs(shooting.residual(z)))
+
+
+@eqx.filter_jit
+def _extremal(ham, p0, rtol, atol):
+    """The extremal from p0: saved (x, p), the controls, and the total cost."""
+    ocp = ham.ocp
+    n = ocp.x0.shape[0]
+    traj = _shoot(ham, rtol, atol, saveat=401, x0=ocp.x0, p0=p0)
+    xs, ps = traj.xs[:, :n], traj.xs[:, n:]
+    us = jax.vmap(ham.u_star)(traj.ts, xs, ps)
+    tr = nhjax.simulate(_CostOfExtremal(ham), jnp.concatenate([ocp.x0, p0, jnp.zeros(1)]), ocp.T,
+                        rtol=rtol, atol=atol, saveat=2, track_work=False, diagnostics=False)
+    yT = tr.xs[-1]
+    cost = ocp.terminal(yT[:n])[0] + yT[-1]
+    return traj, us, cost
+
+
+def solve_pontryagin(
+    ocp: OCP,
+    p0_guess=None,
+    nu_guess=None,
+    *,
+    shooting: str = "single",
+    segments: int = 4,
+    solver: str = "newton",
+    u_star: str = "quadratic",
+    rtol: float = 1e-11,
+    atol: float = 1e-11,
+    tol: float = 1e-10,
+    max_steps: int = 100,
+) -> IndirectResult:
+    """Indirect shooting for ``ocp`` from a costate guess (default zeros).
+
+    solver : "newton" (optimistix.Newton on the residuals) or "lm"
+        (Levenberg–Marquardt, more robust far from the solution).
+    """
+    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
+        raise ProblemError("the Pontryagin solver needs a vector state; use the direct methods")
+    if shooting not in ("single", "multiple"):
+        raise ProblemError("shooting must be 'single' or 'multiple'")
+    t_start = time.perf_counter()
+    n, m = ocp.x0.shape[0], ocp.n_constraints
+    ham = HamiltonianSystem(ocp, u_star)
+    p0 = jnp.zeros(n) if p0_guess is None else jnp.asarray(p0_guess, float)
+    nu = jnp.zeros(m) if nu_guess is None else jnp.asarray(nu_guess, float)
+    if p0.shape != (n,) or nu.shape != (m,):
+        raise ProblemError(f"costate guess must have shape ({n},) and multiplier guess ({m},)")
+    rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
+    S = segments if shooting == "multiple" else 1
+    sh = _Shooting(ham, rt, at, S)
+    z0 = jnp.concatenate([p0, nu])
+    if S > 1:
+        guess = _shoot(ham, rt, at, saveat=S + 1, x0=ocp.x0, p0=p0).xs
+        z0 = jnp.concatenate([z0, guess[1:-1].reshape(-1)])
+    if solver == "newton":
+        sol = optx.root_find(_residual_fn, _root_solver(solver, tol), z0, args=sh,
+                             max_steps=max_steps, throw=False)
+    else:
+        sol = optx.least_squares(_residual_fn, _root_solver(solver, tol), z0, args=sh,
+                                 max_steps=max_steps, throw=False)
+    z = sol.value
+    res = float(_residual_max(sh, z))
+    p0, nu = z[:n], z[n:n + m]
+    traj, us, cost = _extremal(ham, p0, rt, at)
+    psi = ocp.terminal(traj.xs[-1, :n])[1]
+    viol = float(jnp.max(jnp.abs(psi))) if m else 0.0
+    converged = bool(np.isfinite(res)) and res < 1e3 * tol
+    msg = "converged" if converged else f"not converged: shooting residual {res:.2e}"
+    return IndirectResult(
+        p0=np.asarray(p0), nu=np.asarray(nu), cost=float(cost), violation=viol, residual=res,
+        converged=converged, message=msg, trajectory=traj, controls=np.asarray(us),
+        seconds=time.perf_counter() - t_start, iterations=int(sol.stats["num_steps"]),
+    )
+
+
+class _CostOfExtremal(AbstractSystem):
+    """(x, p, J) along the extremal from (x0, p0)."""
+
+    ham: HamiltonianSystem
+
+    def vector_field(self, t, y, u=None):
+        n = self.ham.n
+        x, p = y[:n], y[n:2 * n]
+        ustar = self.ham.u_star(t, x, p)
+        return jnp.concatenate([self.ham.vector_field(t, y[:2 * n]), self.ham.ocp.running_cost(t, x, ustar)[None]])
+
+
+def continuation(solve: Callable, values, z0=None):
+    """Solve a family of problems along ``values`` with warm starts.
+
+    ``solve(value, z)`` must return a result with fields p0 and nu (z = None at the
+    first value means the solver's default guess). Returns the list of results.
+    """
+    results, z = [], z0
+    for v in values:
+        r = solve(v, z)
+        if not r.converged:
+            raise ProblemError(f"continuation stopped at value {v}: {r.message}")
+        results.append(r)
+        z = (r.p0, r.nu)
+    return results
+
+
+@eqx.filter_jit
+def _costate_sweep(ham, control, xT, nu, rtol, atol, n_points, adjoint):
+    """State and costate integrated backward from T along the control, with dH/du etc."""
+    ocp = ham.ocp
+    n, m = ocp.x0.shape[0], nu.shape[0]
+    pT = -_terminal_residual(ocp, xT, jnp.zeros(n), nu)[m:]
+    tr = nhjax.simulate(_Backward(ham, control), jnp.concatenate([xT, pT]), ocp.T, rtol=rtol,
+                        atol=atol, saveat=n_points, track_work=False, diagnostics=False,
+                        adjoint=adjoint)
+    ts = ocp.T - tr.ts
+    xs, ps = tr.xs[:, :n], tr.xs[:, n:]
+    us = jax.vmap(control)(ts, xs)
+    Hu = jax.vmap(jax.grad(ham.hamiltonian, argnums=3))(ts, xs, ps, us)
+    Lu = jax.vmap(jax.grad(ocp.running_cost, argnums=2))(ts, xs, us)
+    H = jax.vmap(ham.hamiltonian)(ts, xs, ps, us)
+    L = jax.vmap(ocp.running_cost)(ts, xs, us)
+    return ts, xs, ps, us, Hu, Lu, H, L
+
+
+def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11, n_points=201):
+    """How far (x, u) from ``control`` is from satisfying Pontryagin's conditions.
+
+    Integrates the state forward, then state and costate backward from the
+    transversality condition p(T) = dPhi/dx + (dpsi/dx)^T nu. With ``multipliers``
+    None, nu is fitted: the costate is affine in nu, so the nu that minimizes the
+    stationarity residual in least squares is exact to compute (this is what makes the
+    check applicable to any solution, e.g. a direct one). Returns a dict with
+    ``stationarity``: max_t |dH/du| / max_t |dL/du|, ``hamiltonian_variation``:
+    (max H - min H) / max |L| (H is constant along optimal motions of autonomous
+    problems), ``multipliers`` (nu), and the arrays ts, xs, ps, us.
+    """
+    from .problem import rollout
+
+    m = ocp.n_constraints
+    traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=2)
+    xT = traj.xs[0][-1]
+    ham = HamiltonianSystem(ocp)
+    rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
+    if multipliers is None:
+        fwd = diffrax.ForwardMode()
+
+        def stationarity(nu):
+            return _costate_sweep(ham, control, xT, nu, rt, at, n_points, fwd)[4].reshape(-1)
+
+        nu0 = jnp.zeros(m)
+        r0, J = stationarity(nu0), jax.jacfwd(stationarity)(nu0)
+        nu = nu0 + jnp.linalg.lstsq(J, -r0)[0]
+    else:
+        nu = jnp.asarray(multipliers, float)
+    ts, xs, ps, us, Hu, Lu, H, L = _costate_sweep(
+        ham, control, xT, nu, rt, at, n_points, diffrax.RecursiveCheckpointAdjoint()
+    )
+    return {
+        "stationarity": float(jnp.max(jnp.abs(Hu)) / jnp.max(jnp.abs(Lu))),
+        "hamiltonian_variation": float((jnp.max(H) - jnp.min(H)) / jnp.max(jnp.abs(L))),
+        "multipliers": np.asarray(nu),
+        "ts": np.asarray(ts), "us": np.asarray(us), "ps": np.asarray(ps), "xs": np.asarray(xs),
+    }
+
+
+class _Backward(AbstractSystem):
+    """(x, p) integrated backward in time s = T - t under a given control."""
+
+    ham: HamiltonianSystem
+    control: Callable
+
+    def vector_field(self, s, y, u=None):
+        n = self.ham.n
+        t = self.ham.ocp.T - s
+        x, p = y[:n], y[n:]
+        uu = self.control(t, x)
+        dx = self.ham.ocp.system.vector_field(t, x, uu)
+        dp = -jax.grad(self.ham.hamiltonian, argnums=1)(t, x, p, uu)
+        return -jnp.concatenate([dx, dp])

@@ -1,0 +1,152 @@
+"""Optimal control: a linear-quadratic problem with a known optimum solved by both
+methods; the velocity-controlled somersault in Iwai's chart, where the fixed-theta
+loop is an exact extremal and direct and Pontryagin optima agree; optimality
+residuals; clear errors for bad problems."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import controls
+from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+from nhjax.mechanics import AbstractSystem
+from nhjax.scenes import FallingCatKinematic
+
+
+class DoubleIntegrator(AbstractSystem):
+    control_dim = 1
+    state_names = ("q", "v")
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([x[1], u[0]])
+
+
+class HalfSquare(eqx.Module):
+    def __call__(self, t, x, u):
+        return 0.5 * u @ u
+
+
+class Target(eqx.Module):
+    x: jax.Array
+
+    def __call__(self, x):
+        return x - self.x
+
+
+def lq_problem(T=1.0):
+    # rest at 0 -> rest at 1: u* = 6/T^2 - 12 t/T^3, cost 6/T^3
+    return controls.OCP(DoubleIntegrator(), jnp.zeros(2), T, running_cost=HalfSquare(),
+                        terminal_constraints=Target(jnp.array([1.0, 0.0])))
+
+
+def test_lq_both_methods_reach_the_analytic_optimum():
+    ocp = lq_problem()
+    ind = controls.solve_pontryagin(ocp)
+    assert ind.converged
+    np.testing.assert_allclose(ind.cost, 6.0, rtol=1e-12)
+    np.testing.assert_allclose(ind.p0, [-12.0, -6.0], atol=1e-9)  # p = dH/dx costates
+    ts = np.asarray(ind.trajectory.ts)
+    np.testing.assert_allclose(ind.controls[:, 0], 6 - 12 * ts, atol=1e-8)
+    # direct: u* is linear in t, so piecewise-linear controls contain it exactly
+    d = controls.solve_direct(ocp, controls.PiecewiseLinear(4, 1.0, 1))
+    assert d.converged and d.violation < 1e-8
+    np.testing.assert_allclose(d.cost, 6.0, rtol=1e-8)
+    np.testing.assert_allclose(d.params, 6 - 12 * np.linspace(0, 1, 5), atol=1e-4)
+    # the direct optimum satisfies Pontryagin's conditions (costates from its multipliers)
+    res = controls.pmp_residual(ocp, d.control, d.multipliers)
+    assert res["stationarity"] < 1e-4 and res["hamiltonian_variation"] < 1e-4
+
+
+@pytest.mark.slow
+def test_lq_multiple_shooting():
+    ocp = lq_problem()
+    ind = controls.solve_pontryagin(ocp, shooting="multiple", segments=3)
+    assert ind.converged
+    np.testing.assert_allclose(ind.cost, 6.0, rtol=1e-12)
+    dm = controls.solve_direct(ocp, controls.PiecewiseLinear(4, 1.0, 1), shooting="multiple", segments=3)
+    assert dm.converged
+    np.testing.assert_allclose(dm.cost, 6.0, rtol=1e-8)
+
+
+def test_gradient_of_shooting_cost_matches_fd():
+    ocp = lq_problem(T=2.0)
+    param = controls.Fourier(3, 2.0, 1)
+    p = jnp.asarray(np.random.default_rng(3).normal(size=param.size))
+
+    def J(p):
+        _, cost, psi = controls.rollout(ocp, param.signal(p), rtol=1e-12, atol=1e-12)
+        return cost + psi @ psi
+
+    g = jax.grad(J)(p)
+    h = 1e-6
+    fd = np.array([(J(p + h * e) - J(p - h * e)) / (2 * h) for e in np.eye(param.size)])
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+
+
+@pytest.fixture(scope="module")
+def chart_cat():
+    return FallingCatKinematic(), 0.6, 2.0
+
+
+def test_fixed_theta_loop_is_the_optimum_for_its_own_holonomy(chart_cat):
+    cat, th0, T = chart_cat
+    turn = float(-2 * np.pi * cat.f(th0))
+    ocp = velocity_somersault_chart(cat, th0, turn, T)
+    # exact extremal: shooting from the closed-form costates has zero residual at once
+    p0, nu = fixed_theta_costates(cat, th0, T)
+    r = controls.solve_pontryagin(ocp, p0, nu)
+    assert r.converged and r.residual < 1e-9 and r.iterations <= 2
+    loop_cost = 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T
+    np.testing.assert_allclose(r.cost, loop_cost, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(r.trajectory.xs[:, 0]), th0, atol=1e-9)  # theta stays
+
+
+def test_somersault_direct_and_pontryagin_agree(chart_cat):
+    """Turn psi by -pi with one twist: continuation from the loop's own holonomy, then the
+    direct method (Chebyshev controls) from the fixed-theta loop as a guess."""
+    cat, th0, T = chart_cat
+    loop_turn = float(-2 * np.pi * cat.f(th0))
+    p0, nu = fixed_theta_costates(cat, th0, T)
+
+    def solve(v, z):
+        return controls.solve_pontryagin(velocity_somersault_chart(cat, th0, v, T), *(z or (p0, nu)))
+
+    ind = controls.continuation(solve, np.linspace(loop_turn, -np.pi, 4))[-1]
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    assert ind.converged and ind.violation < 1e-8
+    param = controls.Chebyshev(10, T, 2)
+    guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
+    d = controls.solve_direct(ocp, param, guess)
+    assert d.converged and d.violation < 1e-8
+    np.testing.assert_allclose(d.cost, ind.cost, rtol=1e-6)
+    assert ind.cost < 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T * 1.1
+    # Pontryagin's conditions hold for the direct optimum, to the accuracy its cost has
+    # (1e-9 in the cost ~ 1e-4.5 in the control): stationarity within 1e-3 of the
+    # scale of dL/du, with fitted multipliers equal to the indirect ones
+    res = controls.pmp_residual(ocp, d.control)
+    assert res["stationarity"] < 1e-3, res["stationarity"]
+    np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-3)
+    # the two optimal controls coincide along the motion
+    us = jax.vmap(lambda t: d.control(t, None))(jnp.asarray(ind.trajectory.ts))
+    np.testing.assert_allclose(us, ind.controls, atol=5e-4 * np.abs(ind.controls).max())
+
+
+def test_bad_problems_are_named():
+    with pytest.raises(controls.ProblemError, match="scalar"):
+        controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=lambda t, x, u: u)
+    with pytest.raises(controls.ProblemError, match="does not fit"):
+        controls.OCP(DoubleIntegrator(), jnp.zeros(3), 1.0, running_cost=HalfSquare())
+    ocp = lq_problem()
+    with pytest.raises(controls.ProblemError, match="2 inputs|takes 1"):
+        controls.solve_direct(ocp, controls.PiecewiseLinear(4, 1.0, 2))
+    with pytest.raises(controls.ProblemError, match="not differentiable|zero gradient"):
+        flat = controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0,
+                            running_cost=lambda t, x, u: jnp.round(u[0]) ** 2)
+        controls.solve_direct(flat, controls.PiecewiseLinear(4, 1.0, 1))
+    # unreachable within the bounds: |u| <= 1 cannot bring the double integrator to 1 in 1 s
+    bounded = controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=HalfSquare(),
+                           terminal_constraints=Target(jnp.array([1.0, 0.0])), u_lower=-1.0, u_upper=1.0)
+    d = controls.solve_direct(bounded, controls.PiecewiseConstant(8, 1.0, 1), max_outer=8)
+    assert not d.converged and "unreachable" in d.message
