@@ -1,0 +1,190 @@
+"""Batch throughput, single-trajectory speed, compile time and gradient cost (issue 4 goals).
+
+All on the torque-driven falling cat of benchmarks/peers/falling_cat.py, measured
+in one run against the Numba Dormand-Prince 5(4) peer (single and prange batch):
+
+* single trajectory after compile, rtol = atol = 1e-8: jax.jit(simulate) vs numba,
+  both with their final-state error;
+* batch throughput (trajectories/s) for 1, 64, 1024, 16384 members on all local
+  cores: nhjax.simulate_batch vs numba prange, with the worst error in the batch
+  (against per-member SciPy DOP853 1e-13 references on a random subset of 32);
+* compile time of simulate() for the scene;
+* gradient of a terminal cost (psi(T)^2) in the 2 torque amplitudes, as a ratio
+  to one forward solve, for each adjoint (reverse: recursive checkpointing,
+  backsolve; forward mode), with its error against central differences.
+
+Writes experiments/out/bench/batch_throughput.{json,png} and prints the goals table.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import nhjax
+from nhjax.scenes import FallingCat
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE / "peers"))
+import falling_cat as peers  # noqa: E402
+
+OUT = HERE.parent / "experiments" / "out" / "bench"
+TOL = 1e-8
+
+
+def median_time(fn, repeats=5, min_total=0.3):
+    ts, start = [], time.perf_counter()
+    while len(ts) < repeats or (time.perf_counter() - start < min_total and len(ts) < 200):
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        ts.append(time.perf_counter() - t)
+    return float(np.median(ts))
+
+
+def case():
+    c = peers.CAT_DEFAULT
+    cat = FallingCat(I1=c["I1"], lam=c["lam"], B=c["B"])
+    ctrl = nhjax.Sinusoids([c["a0"], 0.0], [c["a1"], c["a2"]], [c["w1"], c["w2"]], [0.0, np.pi / 2])
+    return cat, ctrl, jnp.asarray(c["y0"], float), float(c["t1"])
+
+
+def single(cat, ctrl, x0, t1):
+    ref = peers.reference_solution()
+    t = time.perf_counter()
+    first = nhjax.simulate(cat, x0, t1, control=ctrl, rtol=TOL, atol=TOL)
+    compile_s = time.perf_counter() - t
+    eager = median_time(lambda: nhjax.simulate(cat, x0, t1, control=ctrl, rtol=TOL, atol=TOL).xs)
+    run = jax.jit(lambda x: nhjax.simulate(cat, x, t1, control=ctrl, rtol=TOL, atol=TOL, saveat=2,
+                                           track_work=False, diagnostics=False).xs[-1])
+    y = run(x0)
+    jit_s = median_time(lambda: run(x0))
+    p, y0 = peers.case_params(), peers.case_y0()
+    ynb, nacc, _ = peers.dp54_numba(y0, t1, TOL, TOL, p)
+    nb_s = median_time(lambda: peers.dp54_numba(y0, t1, TOL, TOL, p))
+    return dict(
+        compile_seconds=compile_s, simulate_seconds=eager, jit_seconds=jit_s,
+        jit_error=float(np.max(np.abs(np.asarray(y) - ref))), steps=int(first.num_accepted_steps),
+        numba_seconds=nb_s, numba_error=float(np.max(np.abs(ynb - ref))), numba_steps=int(nacc),
+    )
+
+
+def batches(cat, ctrl, t1, sizes):
+    p = peers.case_params()
+    rows = []
+    rng = np.random.default_rng(1)
+    for B in sizes:
+        Y0 = peers.perturbed_y0s(B, seed=0)
+        X0 = jnp.asarray(Y0)
+        nhjax.simulate_batch(cat, X0[: min(B, 64)], t1, control=ctrl, rtol=TOL, atol=TOL,
+                             track_work=False, diagnostics=False, progress=False)  # compile
+        nh_s = median_time(lambda: nhjax.simulate_batch(cat, X0, t1, control=ctrl, rtol=TOL, atol=TOL,
+                                                        track_work=False, diagnostics=False,
+                                                        progress=False).xs, repeats=3)
+        tr = nhjax.simulate_batch(cat, X0, t1, control=ctrl, rtol=TOL, atol=TOL, track_work=False,
+                                  diagnostics=False, progress=False)
+        peers.dp54_numba_batch(Y0[:2], t1, TOL, TOL, p)
+        nb_s = median_time(lambda: peers.dp54_numba_batch(Y0, t1, TOL, TOL, p), repeats=3)
+        Ynb, _ = peers.dp54_numba_batch(Y0, t1, TOL, TOL, p)
+        idx = rng.choice(B, size=min(B, 32), replace=False)
+        worst_nh = worst_nb = 0.0
+        for i in idx:
+            ref = peers.reference_solution(dict(peers.CAT_DEFAULT, y0=tuple(Y0[i])))
+            worst_nh = max(worst_nh, float(np.max(np.abs(np.asarray(tr.xs[i, -1]) - ref))))
+            worst_nb = max(worst_nb, float(np.max(np.abs(Ynb[i] - ref))))
+        rows.append(dict(batch=B, nhjax_traj_per_s=B / nh_s, numba_traj_per_s=B / nb_s,
+                         nhjax_worst_error=worst_nh, numba_worst_error=worst_nb,
+                         saved_bytes_per_member=int(2 * 5 * 8)))
+        print(f"  B={B:6d}: nhjax {B / nh_s:10.0f} traj/s (worst err {worst_nh:.1e})   "
+              f"numba prange {B / nb_s:10.0f} traj/s (worst err {worst_nb:.1e})")
+    return rows
+
+
+def gradients(cat, ctrl, x0, t1):
+    def terminal(amp, adjoint):
+        c = nhjax.Sinusoids(ctrl.offset, amp, ctrl.omega, ctrl.phase)
+        tr = nhjax.simulate(cat, x0, t1, control=c, rtol=1e-10, atol=1e-10, saveat=2, track_work=False,
+                            diagnostics=False, adjoint=adjoint)
+        return tr.xs[-1, 2] ** 2
+
+    amp = ctrl.amplitude
+    fwd = jax.jit(lambda a: terminal(a, diffrax.RecursiveCheckpointAdjoint()))
+    fwd(amp)
+    t_fwd = median_time(lambda: fwd(amp))
+    h = 1e-6
+    fd = np.array([(fwd(amp + h * e) - fwd(amp - h * e)) / (2 * h) for e in np.eye(2)])
+    rows = []
+    for name, adj, mode in [
+        ("reverse, recursive checkpoint", diffrax.RecursiveCheckpointAdjoint(), "rev"),
+        ("reverse, backsolve", diffrax.BacksolveAdjoint(), "rev"),
+        ("forward mode", diffrax.ForwardMode(), "fwd"),
+    ]:
+        f = (jax.jit(jax.grad(lambda a, adj=adj: terminal(a, adj))) if mode == "rev"
+             else jax.jit(jax.jacfwd(lambda a, adj=adj: terminal(a, adj))))
+        t = time.perf_counter()
+        g = jax.block_until_ready(f(amp))
+        comp = time.perf_counter() - t
+        t_g = median_time(lambda f=f: f(amp))
+        rows.append(dict(adjoint=name, ratio_to_forward=t_g / t_fwd, gradient_seconds=t_g,
+                         compile_seconds=comp, error_vs_fd=float(np.max(np.abs(np.asarray(g) - fd)) / np.max(np.abs(fd)))))
+    return dict(forward_seconds=t_fwd, rows=rows)
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    B = [r["batch"] for r in rows]
+    ax.loglog(B, [r["nhjax_traj_per_s"] for r in rows], "o-", label="nhjax simulate_batch")
+    ax.loglog(B, [r["numba_traj_per_s"] for r in rows], "s--", label="numba DP5, prange")
+    ax.set(xlabel="batch size", ylabel="trajectories per second",
+           title=f"falling cat, T = 10 s, rtol = atol = {TOL:g}, {jax.local_device_count()} device(s)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main():
+    OUT.mkdir(parents=True, exist_ok=True)
+    cat, ctrl, x0, t1 = case()
+    print("single trajectory:")
+    s = single(cat, ctrl, x0, t1)
+    print(f"  jax.jit(simulate) {s['jit_seconds'] * 1e3:.3f} ms (err {s['jit_error']:.1e}, {s['steps']} steps); "
+          f"simulate() call {s['simulate_seconds'] * 1e3:.2f} ms; numba {s['numba_seconds'] * 1e3:.3f} ms "
+          f"(err {s['numba_error']:.1e}, {s['numba_steps']} steps); compile {s['compile_seconds']:.2f} s")
+    print("batches:")
+    b = batches(cat, ctrl, t1, [1, 64, 1024, 16384])
+    print("gradient of psi(T)^2 in the torque amplitudes:")
+    g = gradients(cat, ctrl, x0, t1)
+    for r in g["rows"]:
+        print(f"  {r['adjoint']:32s} {r['ratio_to_forward']:6.2f} x forward   rel. error vs FD {r['error_vs_fd']:.1e}"
+              f"   (compile {r['compile_seconds']:.1f} s)")
+    b1024 = [r for r in b if r["batch"] == 1024][0]
+    best_grad = min(r["ratio_to_forward"] for r in g["rows"] if r["adjoint"].startswith("reverse"))
+    goals = [
+        ("single trajectory vs numba (goal <= 2x)", s["jit_seconds"] / s["numba_seconds"]),
+        ("batch 1024 throughput vs numba prange (goal >= 1x)", b1024["nhjax_traj_per_s"] / b1024["numba_traj_per_s"]),
+        ("compile time of simulate, s (goal < 3)", s["compile_seconds"]),
+        ("reverse gradient / forward (goal <= 3x)", best_grad),
+    ]
+    print("\ngoals:")
+    for name, v in goals:
+        print(f"  {name:52s} {v:8.2f}")
+    (OUT / "batch_throughput.json").write_text(json.dumps(
+        dict(single=s, batches=b, gradients=g, goals=dict(goals), devices=jax.local_device_count()), indent=1))
+    plot(b, OUT / "batch_throughput.png")
+    print(f"written: {OUT}/batch_throughput.json, .png")
+
+
+if __name__ == "__main__":
+    main()
