@@ -27,9 +27,11 @@ def _first_doc_line(path: Path) -> str:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="nhjax", description=__doc__)
     sub = parser.add_subparsers(dest="cmd", required=True)
-    p_demo = sub.add_parser("demo", help="the falling cat turns a somersault (prints numbers, writes figures)")
+    p_demo = sub.add_parser("demo", help="optimize the falling cat's somersault, then show it (numbers, figures)")
     p_demo.add_argument("--out", default="experiments/out", help="directory for figures and JSON")
     p_demo.add_argument("--no-figures", action="store_true")
+    p_demo.add_argument("--holonomy", action="store_true",
+                        help="instead: the torque-driven somersault along a closed-form holonomy loop")
     sub.add_parser("list", help="list scenes and experiments")
     p_run = sub.add_parser("run", help="run an experiment script from experiments/")
     p_run.add_argument("experiment")
@@ -39,9 +41,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
 
     if args.cmd == "demo":
-        from .demos import somersault
+        from .demos import optimal_somersault, somersault
 
-        somersault(out=args.out, figures=not args.no_figures)
+        demo = somersault if args.holonomy else optimal_somersault
+        demo(out=args.out, figures=not args.no_figures)
         return 0
     if args.cmd == "list":
         from .scenes import REGISTRY

@@ -239,3 +239,75 @@ def shape_path_figure(cat, traj, path=None, closed_form_turn=None):
     if path is not None:
         fig.savefig(path, dpi=120)
     return fig
+
+
+def optimal_somersault_figure(ts, qs, us, ps=None, us_check=None, turn=None, path=None):
+    """An optimal somersault at a glance, 2x2 panels.
+
+    ``ts`` (N,) [s]; ``qs`` (N, 3) Iwai's (theta, chi, psi) [rad]; ``us`` (N, 2) the
+    optimal inputs (w1', w2') [rad/s] of the smooth coordinates w = theta (cos chi,
+    sin chi); ``ps`` (N, 3) the costates (p_w1, p_w2, p_phi) [J s / rad] of the
+    Pontryagin extremal (or None); ``us_check`` (N, 2) a second solution's inputs
+    drawn dashed (e.g. the direct optimum against the indirect one); ``turn`` the
+    target of psi [rad]. Panels: (a) the shape path (radius theta, angle chi);
+    (b) psi(t); (c) the inputs; (d) the costates. Returns the Figure; saves a PNG to
+    ``path`` (dpi 120) if given.
+    """
+    from matplotlib.figure import Figure
+
+    ts, qs, us = np.asarray(ts), np.asarray(qs), np.asarray(us)
+    theta, chi, psi = qs[:, 0], qs[:, 1], qs[:, 2]
+    fig = Figure(figsize=(10, 7.5), layout="constrained")
+    ax = fig.add_subplot(2, 2, 1, projection="polar")
+    ax.plot(chi, theta, color="tab:purple", lw=1.5)
+    ax.plot(chi[0], theta[0], "o", color="k", label="start = end")
+    ax.plot(0, 0, "+", color="0.4", ms=10, label="straight cat")
+    ax.set_rmax(1.15 * theta.max())
+    ax.legend(loc="lower left", bbox_to_anchor=(-0.2, -0.1), fontsize=8)
+    ax.set_title("(a) shape path: radius $\\theta$, angle $\\chi$ [rad]", size=10)
+    ax = fig.add_subplot(2, 2, 2)
+    ax.plot(ts, psi, color="tab:green", label=r"$\psi$")
+    if turn is not None:
+        ax.axhline(psi[0] + turn, ls="--", color="0.3", label=f"target (mod $2\\pi$) {turn:+.4f}")
+    ax.set(xlabel="t [s]", ylabel=r"$\psi$ [rad]", title=r"(b) overall rotation $\psi$ about $e_2$")
+    ax.legend()
+    ax = fig.add_subplot(2, 2, 3)
+    for k, c in enumerate(("tab:blue", "tab:orange")):
+        ax.plot(ts, us[:, k], color=c, label=rf"$\dot w_{k + 1}$ (Pontryagin)")
+        if us_check is not None:
+            ax.plot(ts, np.asarray(us_check)[:, k], "--", color="k", lw=0.8,
+                    label="direct" if k == 0 else None)
+    ax.set(xlabel="t [s]", ylabel="input [rad/s]", title="(c) optimal shape velocities")
+    ax.legend(fontsize=8)
+    ax = fig.add_subplot(2, 2, 4)
+    if ps is not None:
+        for k, name in enumerate((r"$p_{w_1}$", r"$p_{w_2}$", r"$p_\phi$")):
+            ax.plot(ts, np.asarray(ps)[:, k], label=name)
+        ax.legend(fontsize=8)
+    ax.set(xlabel="t [s]", ylabel="costate [J s/rad]", title="(d) costates of the extremal")
+    for ax in fig.axes[1:]:
+        ax.grid(alpha=0.3)
+    if path is not None:
+        fig.savefig(path, dpi=120)
+    return fig
+
+
+def somersault_animation(cat, ts, qs, path, frames=36, fps=12, *, elev=_ELEV, azim=_AZIM):
+    """GIF of the cat moving through configurations ``qs`` (N, 3) = (theta, chi, psi)
+    [rad] at times ``ts`` [s] (interpolated linearly to ``frames`` frames); written with
+    matplotlib's Pillow writer to ``path``."""
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.figure import Figure
+
+    ts, qs = np.asarray(ts), np.asarray(qs)
+    times = np.linspace(ts[0], ts[-1], frames)
+    qf = np.stack([np.interp(times, ts, qs[:, k]) for k in range(3)], -1)
+    fig = Figure(figsize=(4, 4))
+    ax = fig.add_subplot(projection="3d")
+
+    def draw(i):
+        ax.clear()
+        draw_cat(ax, cat, qf[i], elev=elev, azim=azim)
+        ax.set_title(rf"$t$ = {times[i]:.2f} s, $\psi$ = {qf[i, 2]:+.2f} rad", fontsize=10)
+
+    FuncAnimation(fig, draw, frames=frames).save(path, writer=PillowWriter(fps=fps), dpi=80)

@@ -1,7 +1,6 @@
 """Optimal control: a linear-quadratic problem with a known optimum solved by both
-methods; the velocity-controlled somersault in Iwai's chart, where the fixed-theta
-loop is an exact extremal and direct and Pontryagin optima agree; optimality
-residuals; clear errors for bad problems."""
+methods; optimality residuals; gradients of the shooting cost; clear errors for bad
+problems. (The somersault tasks are in test_somersault_ocp.py.)"""
 
 import equinox as eqx
 import jax
@@ -10,9 +9,7 @@ import numpy as np
 import pytest
 
 import controls
-from controls.tasks import fixed_theta_costates, velocity_somersault_chart
 from nhjax.mechanics import AbstractSystem
-from nhjax.scenes import FallingCatKinematic
 
 
 class DoubleIntegrator(AbstractSystem):
@@ -83,54 +80,6 @@ def test_gradient_of_shooting_cost_matches_fd():
     h = 1e-6
     fd = np.array([(J(p + h * e) - J(p - h * e)) / (2 * h) for e in np.eye(param.size)])
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
-
-
-@pytest.fixture(scope="module")
-def chart_cat():
-    return FallingCatKinematic(), 0.6, 2.0
-
-
-def test_fixed_theta_loop_is_the_optimum_for_its_own_holonomy(chart_cat):
-    cat, th0, T = chart_cat
-    turn = float(-2 * np.pi * cat.f(th0))
-    ocp = velocity_somersault_chart(cat, th0, turn, T)
-    # exact extremal: shooting from the closed-form costates has zero residual at once
-    p0, nu = fixed_theta_costates(cat, th0, T)
-    r = controls.solve_pontryagin(ocp, p0, nu)
-    assert r.converged and r.residual < 1e-9 and r.iterations <= 2
-    loop_cost = 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T
-    np.testing.assert_allclose(r.cost, loop_cost, rtol=1e-10)
-    np.testing.assert_allclose(np.asarray(r.trajectory.xs[:, 0]), th0, atol=1e-9)  # theta stays
-
-
-def test_somersault_direct_and_pontryagin_agree(chart_cat):
-    """Turn psi by -pi with one twist: continuation from the loop's own holonomy, then the
-    direct method (Chebyshev controls) from the fixed-theta loop as a guess."""
-    cat, th0, T = chart_cat
-    loop_turn = float(-2 * np.pi * cat.f(th0))
-    p0, nu = fixed_theta_costates(cat, th0, T)
-
-    def solve(v, z):
-        return controls.solve_pontryagin(velocity_somersault_chart(cat, th0, v, T), *(z or (p0, nu)))
-
-    ind = controls.continuation(solve, np.linspace(loop_turn, -np.pi, 4))[-1]
-    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
-    assert ind.converged and ind.violation < 1e-8
-    param = controls.Chebyshev(10, T, 2)
-    guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
-    d = controls.solve_direct(ocp, param, guess)
-    assert d.converged and d.violation < 1e-8
-    np.testing.assert_allclose(d.cost, ind.cost, rtol=1e-6)
-    assert ind.cost < 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T * 1.1
-    # Pontryagin's conditions hold for the direct optimum, to the accuracy its cost has
-    # (1e-9 in the cost ~ 1e-4.5 in the control): stationarity within 1e-3 of the
-    # scale of dL/du, with fitted multipliers equal to the indirect ones
-    res = controls.pmp_residual(ocp, d.control)
-    assert res["stationarity"] < 1e-3, res["stationarity"]
-    np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-3)
-    # the two optimal controls coincide along the motion
-    us = jax.vmap(lambda t: d.control(t, None))(jnp.asarray(ind.trajectory.ts))
-    np.testing.assert_allclose(us, ind.controls, atol=5e-4 * np.abs(ind.controls).max())
 
 
 def test_bad_problems_are_named():

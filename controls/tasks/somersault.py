@@ -16,12 +16,20 @@ Hamiltonian is Iwai's (7.6) (here in the minimum convention, with H_min =
 Torque control (7.14)-(7.15): ``torque_somersault``, rest to rest, minimizing
 int |u|^2 dt.
 
+``somersault_free_winding`` solves the smooth problem from several starting
+loops (each winding chi any number of times, one of them a poor pick), keeps
+the best, reports the winding it found and polishes it by Pontryagin shooting
+from the costates of the direct optimum.
+
 ``fixed_theta_costates`` gives the exact extremal of the chart problem when the
 turn is the holonomy of the fixed-theta loop (-2 pi f(theta0) per winding): the
 start of a continuation in the turn.
 """
 
 from __future__ import annotations
+
+import dataclasses
+import time
 
 import equinox as eqx
 import jax
@@ -31,13 +39,20 @@ import numpy as np
 from nhjax.scenes import FallingCat, FallingCatKinematic
 from nhjax.scenes.falling_cat import FallingCatSmooth
 
-from ..problem import OCP
+from ..direct import DirectResult, solve_direct
+from ..parametrize import Chebyshev
+from ..pontryagin import IndirectResult, pmp_residual, solve_pontryagin
+from ..problem import OCP, rollout
 
 __all__ = [
     "Effort",
     "TerminalTarget",
     "Vibrational",
+    "FreeWindingResult",
     "fixed_theta_costates",
+    "loop_guess",
+    "smooth_to_chart",
+    "somersault_free_winding",
     "torque_somersault",
     "velocity_somersault_chart",
     "velocity_somersault_smooth",
@@ -108,3 +123,92 @@ def fixed_theta_costates(cat: FallingCatKinematic, theta0, T, windings=1):
     p_chi = cat.f(theta0) * p_psi - 2 * cat.I1 * g(theta0) * c
     p = jnp.stack([jnp.zeros(()), p_chi, p_psi])
     return p, p
+
+
+def loop_guess(param, theta0, T, winding):
+    """Parameters of ``param`` (smooth inputs u = w') fitted to a starting loop.
+
+    winding != 0: the fixed-theta loop |w| = theta0 run ``winding`` times (chi
+    advances 2 pi winding); winding = 0: a circle of radius theta0/3 through
+    w(0) = (theta0, 0) that does not enclose the straight cat (chi returns).
+    """
+    if winding:
+        c = 2 * np.pi * winding / T
+        return param.fit(lambda t: theta0 * c * jnp.stack([-jnp.sin(c * t), jnp.cos(c * t)]))
+    r, c = theta0 / 3, 2 * np.pi / T
+    return param.fit(lambda t: r * c * jnp.stack([-jnp.sin(c * t), jnp.cos(c * t)]))
+
+
+def smooth_to_chart(xs):
+    """Iwai's (theta, chi, psi) [rad] along a path (N, 3) of (w1, w2, phi): theta = |w|,
+    chi = the unwrapped polar angle of w, psi = phi - chi (valid where theta > 0)."""
+    xs = jnp.asarray(xs)
+    theta = jnp.linalg.norm(xs[:, :2], axis=1)
+    chi = jnp.unwrap(jnp.arctan2(xs[:, 1], xs[:, 0]))
+    return jnp.stack([theta, chi, xs[:, 2] - chi], axis=1)
+
+
+@dataclasses.dataclass
+class FreeWindingResult:
+    """Outcome of ``somersault_free_winding``.
+
+    best: the direct optimum of least cost; ocp: its problem (the class j of the
+    fiber target it reached); winding: how often its shape path winds about the
+    straight cat (chi's advance / 2 pi); min_theta: the least bend along it [rad];
+    starts: one summary per starting loop; indirect: the Pontryagin polish (None if
+    not asked), cost_agreement: |J_direct - J_indirect| / J_indirect.
+    """
+
+    best: DirectResult
+    ocp: OCP
+    winding: float
+    min_theta: float
+    starts: list
+    indirect: IndirectResult | None
+    cost_agreement: float
+    stationarity: float
+    seconds: float
+
+
+def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=None,
+                            start_windings=(1, 0, -1, 2), polish=True, rtol=1e-10, atol=1e-10,
+                            n_check=401, **direct_kw) -> FreeWindingResult:
+    """The velocity-controlled somersault with the winding left to the optimizer.
+
+    For every starting loop (``loop_guess`` with each of ``start_windings``) the fiber
+    target phi(T) = turn + 2 pi j takes the class j nearest to where that loop ends
+    (a loop winding k times ends at 2 pi k (1 - f(theta0))), and ``solve_direct``
+    runs from it. The cheapest converged optimum wins; its winding is measured on
+    the solved path. With ``polish``, Pontryagin shooting starts from the costates
+    that ``pmp_residual`` recovers from the direct optimum, and the two costs are
+    compared.
+    """
+    t_start = time.perf_counter()
+    param = Chebyshev(10, T, 2) if param is None else param
+    f0 = float(cat.f(theta0))
+    starts, best, best_ocp = [], None, None
+    for k in start_windings:
+        phi_end = 2 * np.pi * k * (1 - f0) if k else 0.0
+        j = int(np.round((phi_end - turn) / (2 * np.pi)))
+        ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
+        d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol, **direct_kw)
+        traj, _, _ = rollout(ocp, d.control, rtol=rtol, atol=atol, saveat=n_check)
+        ws = traj.xs[0][:, :2]
+        info = dict(start_winding=k, j=j, cost=d.cost, violation=d.violation, converged=d.converged,
+                    iterations=d.iterations, winding=float(cat.winding(ws)),
+                    min_theta=float(jnp.min(jnp.linalg.norm(ws, axis=1))), seconds=d.seconds)
+        starts.append(info)
+        if d.converged and (best is None or d.cost < best.cost):
+            best, best_ocp, best_info = d, ocp, info
+    if best is None:
+        raise RuntimeError(f"no start converged: {starts}")
+    ind, agree, stat = None, float("nan"), float("nan")
+    res = pmp_residual(best_ocp, best.control)
+    stat = res["stationarity"]
+    if polish:
+        ind = solve_pontryagin(best_ocp, res["ps"][-1], res["multipliers"])
+        agree = abs(best.cost - ind.cost) / abs(ind.cost)
+    return FreeWindingResult(best=best, ocp=best_ocp, winding=best_info["winding"],
+                             min_theta=best_info["min_theta"], starts=starts, indirect=ind,
+                             cost_agreement=agree, stationarity=stat,
+                             seconds=time.perf_counter() - t_start)

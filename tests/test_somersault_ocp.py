@@ -1,0 +1,87 @@
+"""The velocity-controlled somersault as optimal control: in Iwai's chart the
+fixed-theta loop is an exact extremal and direct and Pontryagin optima agree; in
+coordinates smooth at the straight cat the optimizer picks the winding."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import controls
+from controls.tasks import fixed_theta_costates, somersault_free_winding, velocity_somersault_chart
+from nhjax.scenes import FallingCatKinematic
+from nhjax.scenes.falling_cat import FallingCatSmooth
+
+
+@pytest.fixture(scope="module")
+def chart_cat():
+    return FallingCatKinematic(), 0.6, 2.0
+
+
+def test_fixed_theta_loop_is_the_optimum_for_its_own_holonomy(chart_cat):
+    cat, th0, T = chart_cat
+    turn = float(-2 * np.pi * cat.f(th0))
+    ocp = velocity_somersault_chart(cat, th0, turn, T)
+    # exact extremal: shooting from the closed-form costates has zero residual at once
+    p0, nu = fixed_theta_costates(cat, th0, T)
+    r = controls.solve_pontryagin(ocp, p0, nu)
+    assert r.converged and r.residual < 1e-9 and r.iterations <= 2
+    loop_cost = 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T
+    np.testing.assert_allclose(r.cost, loop_cost, rtol=1e-10)
+    np.testing.assert_allclose(np.asarray(r.trajectory.xs[:, 0]), th0, atol=1e-9)  # theta stays
+
+
+@pytest.fixture(scope="module")
+def chart_optimum(chart_cat):
+    """Turn psi by -pi with one twist, by Pontryagin: continuation in the turn from the
+    fixed-theta loop's own holonomy (an exact extremal)."""
+    cat, th0, T = chart_cat
+    loop_turn = float(-2 * np.pi * cat.f(th0))
+    p0, nu = fixed_theta_costates(cat, th0, T)
+
+    def solve(v, z):
+        return controls.solve_pontryagin(velocity_somersault_chart(cat, th0, v, T), *(z or (p0, nu)))
+
+    return controls.continuation(solve, np.linspace(loop_turn, -np.pi, 4))[-1]
+
+
+def test_somersault_direct_and_pontryagin_agree(chart_cat, chart_optimum):
+    """The chart problem (chi winds once): the direct method (Chebyshev controls) from
+    the fixed-theta loop as a guess agrees with the indirect optimum."""
+    cat, th0, T = chart_cat
+    ind = chart_optimum
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    assert ind.converged and ind.violation < 1e-8
+    param = controls.Chebyshev(10, T, 2)
+    guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
+    d = controls.solve_direct(ocp, param, guess)
+    assert d.converged and d.violation < 1e-8
+    np.testing.assert_allclose(d.cost, ind.cost, rtol=1e-6)
+    assert ind.cost < 4 * np.pi**2 * float(cat.I1 * cat.lam * np.sin(th0) ** 2 / cat.D(th0)) / T * 1.1
+    # Pontryagin's conditions hold for the direct optimum, to the accuracy its cost has
+    # (1e-9 in the cost ~ 1e-4.5 in the control): stationarity within 1e-3 of the
+    # scale of dL/du, with fitted multipliers equal to the indirect ones
+    res = controls.pmp_residual(ocp, d.control)
+    assert res["stationarity"] < 1e-3, res["stationarity"]
+    np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-3)
+    # the two optimal controls coincide along the motion
+    us = jax.vmap(lambda t: d.control(t, None))(jnp.asarray(ind.trajectory.ts))
+    np.testing.assert_allclose(us, ind.controls, atol=5e-4 * np.abs(ind.controls).max())
+
+
+def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum):
+    """In coordinates smooth at the straight cat the winding is the optimizer's choice. A
+    poor start (chi does not wind) crosses theta = 0 and ends on a once-winding optimum
+    (the mirror image of the chart optimum, same cost); direct and Pontryagin agree."""
+    cat, th0, T = chart_cat
+    smooth = FallingCatSmooth(cat.I1, cat.lam, cat.B)
+    r = somersault_free_winding(smooth, th0, -np.pi, T, start_windings=(0, 1))
+    poor, loop = r.starts
+    assert poor["converged"] and loop["converged"]
+    assert abs(abs(poor["winding"]) - 1) < 1e-6 and abs(loop["winding"] - 1) < 1e-6
+    np.testing.assert_allclose(poor["cost"], loop["cost"], rtol=1e-6)
+    assert r.best.violation < 1e-8 and r.indirect.converged and r.indirect.violation < 1e-8
+    assert r.cost_agreement < 1e-6
+    np.testing.assert_allclose(r.indirect.cost, chart_optimum.cost, rtol=1e-8)
+    assert r.stationarity < 1e-3
+    assert r.min_theta > 0.1  # the optimum itself keeps away from the straight cat
