@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 
 import controls
-from controls.tasks import fixed_theta_costates, somersault_free_winding, velocity_somersault_chart
-from nhjax.scenes import FallingCatKinematic
+from controls.tasks import (
+    fixed_theta_costates,
+    somersault_free_winding,
+    torque_loop_guess,
+    torque_somersault,
+    velocity_somersault_chart,
+)
+from nhjax.scenes import FallingCat, FallingCatKinematic
 from nhjax.scenes.falling_cat import FallingCatSmooth
 
 
@@ -85,3 +91,30 @@ def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum)
     np.testing.assert_allclose(r.indirect.cost, chart_optimum.cost, rtol=1e-8)
     assert r.stationarity < 1e-3
     assert r.min_theta > 0.1  # the optimum itself keeps away from the straight cat
+
+
+def test_torque_loop_guess_turns_by_its_holonomy():
+    """The guess's torques (inverse dynamics of a fixed-theta twist from rest to rest)
+    reproduce that motion: rest at the end, chi advanced by 2 pi, psi by -2 pi f."""
+    cat, th0, T = FallingCat.from_dimensions(1.0, 1.0, 0.25), 0.6, 2.0
+    param = controls.Chebyshev(16, T, 2)
+    ocp = torque_somersault(cat, th0, float(-2 * np.pi * cat.f(th0)), T)
+    _, _, psi = controls.rollout(ocp, param.signal(torque_loop_guess(cat, param, th0, T)),
+                                 rtol=1e-11, atol=1e-11)
+    assert float(jnp.max(jnp.abs(psi))) < 1e-6  # the Chebyshev fit of the torques
+
+
+@pytest.mark.slow
+def test_torque_somersault_direct_and_pontryagin_agree():
+    """Rest to rest under torques, psi turns by -pi: the direct optimum (from the
+    fixed-theta twist) and Pontryagin shooting from its costates agree."""
+    cat, th0, T = FallingCat.from_dimensions(1.0, 1.0, 0.25), 0.6, 2.0
+    param = controls.Chebyshev(12, T, 2)
+    ocp = torque_somersault(cat, th0, -np.pi, T)
+    d = controls.solve_direct(ocp, param, torque_loop_guess(cat, param, th0, T))
+    assert d.converged and d.violation < 1e-8
+    res = controls.pmp_residual(ocp, d.control)
+    ind = controls.solve_pontryagin(ocp, res["ps"][-1], res["multipliers"])
+    assert ind.converged and ind.violation < 1e-8
+    np.testing.assert_allclose(d.cost, ind.cost, rtol=1e-6)
+    assert res["stationarity"] < 1e-2

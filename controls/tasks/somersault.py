@@ -51,6 +51,7 @@ __all__ = [
     "FreeWindingResult",
     "fixed_theta_costates",
     "loop_guess",
+    "torque_loop_guess",
     "smooth_to_chart",
     "somersault_free_winding",
     "torque_somersault",
@@ -212,3 +213,21 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
                              min_theta=best_info["min_theta"], starts=starts, indirect=ind,
                              cost_agreement=agree, stationarity=stat,
                              seconds=time.perf_counter() - t_start)
+
+
+def torque_loop_guess(cat: FallingCat, param, theta0, T, windings=1):
+    """Parameters of ``param`` fitted to the torques (7.14)-(7.15) that hold theta at
+    ``theta0`` while chi runs 2 pi ``windings`` times from rest to rest,
+    chi'(t) = c (1 - cos(2 pi t / T)), c = 2 pi windings / T: u1 balances the
+    centrifugal term, u2 = 2 I1 lam s^2 / D chi''. A rest-to-rest motion that
+    turns psi by -2 pi windings f(theta0): a start for the torque somersault."""
+    s, co = np.sin(theta0), np.cos(theta0)
+    D = float(cat.D(theta0))
+    I1, lam = float(cat.I1), float(cat.lam)
+    c, w = 2 * np.pi * windings / T, 2 * np.pi / T
+
+    def u(t):
+        chid, chidd = c * (1 - jnp.cos(w * t)), c * w * jnp.sin(w * t)
+        return jnp.stack([-2 * I1 * lam**2 * s * co / D**2 * chid**2, 2 * I1 * lam * s**2 / D * chidd])
+
+    return param.fit(u)
