@@ -31,8 +31,8 @@ X_{k+1} = F(X_k, U_k). Controls are piecewise constant (one value per interval,
   quadrature, expanded to SX (IPOPT gets the exact Hessian of the Lagrangian);
 * ``integrator="cvodes"``: CasADi's SUNDIALS CVODES (BDF, with the cost as a
   quadrature, rtol = atol = 1e-10); IPOPT uses a limited-memory (L-BFGS)
-  Hessian here, since exact second-order sensitivities through CVODES are
-  what nobody uses for speed.
+  Hessian here by default (``hessian="exact"`` is available: in a trial with
+  N = 20, pc, it took 16 iterations and 2.6 s against 29 and 1.2 s).
 
 The warm start is the fixed-theta loop: theta = theta0, chi = 2 pi t / T,
 psi = -f(theta0) chi, u = (0, 2 pi / T).
