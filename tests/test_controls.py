@@ -56,6 +56,25 @@ def test_lq_both_methods_reach_the_analytic_optimum():
     assert res["stationarity"] < 1e-4 and res["hamiltonian_variation"] < 1e-4
 
 
+def test_lq_feasible_path_newton_reaches_the_analytic_optimum():
+    """solve_direct_newton on the LQ problem: u* = 6 - 12 t lies in the piecewise-linear
+    space, so the optimum is exact; its multipliers make the direct optimum satisfy
+    Pontryagin's conditions as solve_direct's do."""
+    ocp = lq_problem()
+    param = controls.PiecewiseLinear(4, 1.0, 1)
+    d = controls.solve_direct_newton(ocp, param, jnp.zeros(param.size), rtol=1e-12, atol=1e-12)
+    assert d.converged, d.message
+    assert d.violation < 1e-10 and d.iterations <= 3  # a quadratic problem: one Newton step
+    np.testing.assert_allclose(d.cost, 6.0, rtol=1e-10)
+    np.testing.assert_allclose(d.params, 6 - 12 * np.linspace(0, 1, 5), atol=1e-7)
+    res = controls.pmp_residual(ocp, d.control, d.multipliers)
+    assert res["stationarity"] < 1e-6 and res["hamiltonian_variation"] < 1e-6
+    with pytest.raises(controls.ProblemError, match="bounds"):
+        bounded = controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=HalfSquare(),
+                               terminal_constraints=Target(jnp.array([1.0, 0.0])), u_lower=-1.0, u_upper=1.0)
+        controls.solve_direct_newton(bounded, param, jnp.zeros(param.size))
+
+
 @pytest.mark.slow
 def test_lq_multiple_shooting():
     ocp = lq_problem()
