@@ -5,8 +5,10 @@ control's parameters (leading axis 0 of the arrays of the batched ones, chosen
 with ``in_axes``). Each member gets its own adaptive step sizes, so it is solved
 to the same tolerance, and to the same result, as a single ``simulate()`` call.
 
-How it runs: the batch is cut into chunks of ``chunk_size`` members; a chunk is
-one compiled, vmapped solve (members step in lock-step, finished ones idle).
+How it runs: the batch is cut into equal chunks of at most ``chunk_size``
+members, and into at least one chunk per worker (whole rounds of ``workers``
+chunks); a chunk is one vmapped solve compiled once ahead of time (members step
+in lock-step, finished ones idle).
 Chunks are dispatched to every local CPU device, or, with a single device, to
 ``workers`` threads that run compiled chunks concurrently (XLA releases the
 GIL), so both cores of a laptop work. Memory stays bounded: a chunk holds only
@@ -147,7 +149,8 @@ def simulate_batch(
 
     in_axes : dict with keys among "system", "x0", "control" giving 0 (batched along
         axis 0) or None; default ``{"x0": 0}``.
-    chunk_size : members per compiled chunk (bounds memory; the last chunk is padded).
+    chunk_size : at most this many members per compiled chunk (bounds memory; the
+        batch is split into at least ``workers`` equal chunks, the last one padded).
     workers : concurrent chunks (default: the number of local devices, or 2 threads
         on a single CPU device when the machine has at least 2 cores).
     progress : tqdm bar over chunks (default: on for more than 4 chunks).
@@ -200,11 +203,17 @@ def simulate_batch(
             "or split the batch"
         )
 
-    chunk = max(1, min(int(chunk_size), B))
-    starts = list(range(0, B, chunk))
     devices = jax.local_devices()
     if workers is None:
         workers = len(devices) if len(devices) > 1 else (2 if (os.cpu_count() or 1) >= 2 else 1)
+    workers = max(1, int(workers))
+    # At least one chunk per worker (a batch of <= chunk_size members as ONE chunk left
+    # the second core idle), then equal chunks: ceil(B / n) members each.
+    n_chunks = max(-(-B // max(1, int(chunk_size))), min(workers, B))
+    if n_chunks % workers and n_chunks > workers:  # whole rounds: no worker waits on a last odd chunk
+        n_chunks += workers - n_chunks % workers
+    chunk = -(-B // n_chunks)
+    starts = list(range(0, B, chunk))
     if progress is None:
         progress = len(starts) > 4
 
@@ -254,12 +263,22 @@ def simulate_batch(
     lock = threading.Lock()
     results = [None] * len(starts)
 
-    def run(i):
+    def chunk_inputs(i):
         device = devices[i % len(devices)]
         s, x, c = chunk_args(starts[i], device)
         if project:
             x = eqx.filter_vmap(lambda ss, xx: ss.project(t0a, xx), in_axes=(axes[0], 0))(s, x)
-        out = _solve_chunk(s, x, c, t0a, t1a, options, guard_names, axes)
+        return s, x, c
+
+    # Compile once, ahead of time, before any concurrency (every chunk has the same
+    # shapes); with several devices, jit compiles per device on first use instead.
+    solve = _solve_chunk
+    if len(devices) == 1:
+        solve = _solve_chunk.lower(*chunk_inputs(0), t0a, t1a, options, guard_names, axes).compile()
+
+    def run(i):
+        s, x, c = chunk_inputs(i)
+        out = solve(s, x, c, t0a, t1a, options, guard_names, axes)
         out = jax.block_until_ready(out)
         with lock:
             results[i] = out
@@ -274,13 +293,15 @@ def simulate_batch(
         if bar is not None:
             bar.update(min(chunk, B - starts[i]))
 
-    done(run(0))  # compiles once, before any concurrency
-    if workers > 1 and len(starts) > 2:
+    if len(devices) > 1:
+        done(run(0))  # compiles (on device 0) before any concurrency
+    first = 1 if len(devices) > 1 else 0
+    if workers > 1 and len(starts) - first > 1:
         with ThreadPoolExecutor(workers) as pool:
-            for i in pool.map(run, range(1, len(starts))):
+            for i in pool.map(run, range(first, len(starts))):
                 done(i)
     else:
-        for i in range(1, len(starts)):
+        for i in range(first, len(starts)):
             done(run(i))
     if bar is not None:
         bar.close()
