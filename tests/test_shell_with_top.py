@@ -350,3 +350,32 @@ def test_long_run_10k_orbits(rng):
     for rel in per_segment:
         for k, v in rel.items():
             assert v < 3e-9, (k, v)
+
+
+def test_rotation_vector_chart_guard():
+    """The engine model's rotation-vector chart is singular at |theta| = 2 pi: its guards
+    measure the distance to that sphere (less chart_eps) for shell and top separately."""
+    lag = ShellWithTopLagrangian(chart_eps=0.1)
+    x = jnp.zeros(16).at[2:5].set(jnp.array([0.0, 3.0, 4.0])).at[5:8].set(jnp.array([6.0, 0.0, 0.0]))
+    g = lag.guards(x)
+    np.testing.assert_allclose(g["shell rotation vector"], 2 * np.pi - 0.1 - 5.0, rtol=1e-14)
+    np.testing.assert_allclose(g["top rotation vector"], 2 * np.pi - 0.1 - 6.0, rtol=1e-14)
+    assert np.all(np.isfinite(jax.grad(lambda y: lag.guards(y)["top rotation vector"])(jnp.zeros(16))))
+    with pytest.raises(ValueError, match="chart_eps"):
+        ShellWithTopLagrangian(chart_eps=7.0)
+
+
+@pytest.mark.slow
+def test_spinning_shell_stops_at_the_rotation_vector_chart_edge():
+    """A shell spinning about the vertical at 3 rad/s (top hanging at rest) in rotation-vector
+    coordinates: the simulation stops where |theta_s| = 2 pi - chart_eps, after about
+    (2 pi - 0.1) / 3 s, and names the guard."""
+    lag = ShellWithTopLagrangian(c=(0.0, 0.0, -0.06), chart_eps=0.1)
+    x0 = jnp.zeros(16).at[12].set(3.0)
+    with pytest.raises(nhjax.ChartSingularityError, match="rotation-vector chart") as err:
+        nhjax.simulate(lag, x0, 5.0, rtol=1e-10, atol=1e-10)
+    e = err.value
+    assert e.guard == "shell rotation vector"
+    np.testing.assert_allclose(e.t, (2 * np.pi - 0.1) / 3.0, rtol=1e-6)  # steady spin: theta_s = 3 t e3
+    xs = e.trajectory.xs
+    np.testing.assert_allclose(np.linalg.norm(xs[-1, 2:5]), 2 * np.pi - 0.1, atol=1e-9)

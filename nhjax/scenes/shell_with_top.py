@@ -507,7 +507,10 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
     xc' - (Rs omega_s x e_z)_x = 0, yc' - (Rs omega_s x e_z)_y = 0, and the
     internal torque u (top axes) enters as the generalized force of the power
     (R_t u, omega_t - omega_s) (space axes). The chart is singular at
-    |theta| = 2 pi. ``reduced_state(q, qd)`` maps to ``ShellWithTopReduced``'s state.
+    |theta| = 2 pi (dexp is not invertible there): the guards "shell rotation
+    vector" and "top rotation vector" stop a simulation at |theta| = 2 pi -
+    ``chart_eps`` [rad] with a ``ChartSingularityError`` (default chart_eps =
+    0.1). ``reduced_state(q, qd)`` maps to ``ShellWithTopReduced``'s state.
     """
 
     ms: jax.Array
@@ -518,6 +521,14 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
     c: jax.Array
     g: jax.Array
     n: int = eqx.field(static=True, default=8)
+    chart_eps: float = eqx.field(static=True, default=0.1)
+
+    guard_hints: ClassVar[dict] = {
+        k: f"the {k} approaches |theta| = 2 pi, where the rotation-vector chart is singular; "
+        "simulate long or fast-spinning motions with ShellWithTop (attitudes on SO(3)) or "
+        "ShellWithTopReduced, or restart from the equivalent rotation vector theta (1 - 2 pi/|theta|)"
+        for k in ("shell rotation vector", "top rotation vector")
+    }
 
     state_names: ClassVar[tuple] = (
         "xc", "yc", "ths1", "ths2", "ths3", "tht1", "tht2", "tht3",
@@ -525,11 +536,23 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
     )  # fmt: skip
     control_dim: ClassVar[int] = 3
 
-    def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=0.5, It=(2e-3, 3e-3, 4e-3), c=(0.01, 0.0, -0.06), g=9.81):
+    def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=0.5, It=(2e-3, 3e-3, 4e-3), c=(0.01, 0.0, -0.06), g=9.81,
+                 chart_eps=0.1):
         red = ShellWithTopReduced(ms=ms, Rs=Rs, Is=Is, mt=mt, It=It, c=c, g=g, case="general")
         self.ms, self.Is, self.Rs, self.mt = red.ms, red.Is, red.Rs, red.mt
         self.It, self.c, self.g = red.It, red.c, red.g
         self.n = 8
+        chart_eps = float(chart_eps)
+        if not 0.0 < chart_eps < 2 * np.pi:
+            raise ValueError(f"chart_eps must lie in (0, 2 pi) rad, got {chart_eps}")
+        self.chart_eps = chart_eps
+
+    def guards(self, x):
+        """Distance [rad] of each rotation vector from the singular sphere |theta| = 2 pi,
+        less chart_eps: positive inside the chart."""
+        lim = 2 * np.pi - self.chart_eps
+        norm = lambda v: jnp.sqrt(v @ v + 1e-300)  # noqa: E731  (finite derivative at 0)
+        return {"shell rotation vector": lim - norm(x[2:5]), "top rotation vector": lim - norm(x[5:8])}
 
     @classmethod
     def from_reduced(cls, red: ShellWithTopReduced):
