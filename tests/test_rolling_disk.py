@@ -115,9 +115,10 @@ def test_quaternion_model_agrees_with_minimal(case):
         t1 = 20.0
     tr = nhjax.simulate(disk, x0, t1, saveat=N_SAVE, rtol=1e-10, atol=1e-10)
     tq = nhjax.simulate(quat, disk.to_quaternion_state(x0), t1, saveat=N_SAVE, rtol=1e-10, atol=1e-10)
-    assert np.abs(np.asarray(tq.xs[:, :3] - _centres(disk, tr.xs))).max() < 1e-6
+    # measured 4.7e-9 (circle) and 1.2e-8 (wobble); 7.5e-8 and 3.4e-8 with Baumgarte (1, 1)
+    assert np.abs(np.asarray(tq.xs[:, :3] - _centres(disk, tr.xs))).max() < 3e-8
     for name, v in tq.constraint_drift.items():
-        assert v < 1e-8, name
+        assert v < 1e-12, name
     assert tq.invariant_drift["energy"] < 1e-8
     assert tr.invariant_drift["energy"] < 1e-8
 
