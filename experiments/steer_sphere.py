@@ -202,7 +202,7 @@ def figures(robot, ocp, target, ts, xy, Rt, v, us, tilt, summary, out, ind=None)
     bob = np.einsum("nij,j->ni", Rt, c)  # hinge -> top's centre of mass, space axes [m]
     fwd = np.einsum("nij,j->ni", Rt, np.asarray(ocp.terminal_constraints.forward))
 
-    fig, ax = plt.subplots(2, 2, figsize=(11, 8))
+    fig, ax = plt.subplots(3, 2, figsize=(11, 11.5))
     a = ax[0, 0]
     a.plot(xy[:, 0], xy[:, 1], "C0", label="contact point")
     a.plot(xy[:, 0] + bob[:, 0], xy[:, 1] + bob[:, 1], "C1", lw=0.8, label="top's centre of mass (plan)")
@@ -240,6 +240,26 @@ def figures(robot, ocp, target, ts, xy, Rt, v, us, tilt, summary, out, ind=None)
     a.set_xlabel("t [s]")
     a.legend(fontsize=8)
     a.set_title("top attitude")
+    # costates of the Pontryagin extremal (reduced state: omega, Omega in the top's axes,
+    # ..., xy); the optimal torque is u* = -(1/2) B(x)^T p, built from p_omega and p_Omega
+    if ind is not None:
+        t_ind = np.asarray(ind.trajectory.ts)
+        n = ind.trajectory.xs.shape[1] // 2
+        p = np.asarray(ind.trajectory.xs)[:, n:]
+        for k, (a, sl, name) in enumerate(((ax[2, 0], slice(0, 3), "\\omega"), (ax[2, 1], slice(3, 6), "\\Omega"))):
+            for i in range(3):
+                a.plot(t_ind, p[:, sl][:, i], label=f"$p_{{{name}_{i + 1}}}$")
+            a.set_xlabel("t [s]")
+            a.set_ylabel("costate [N$^2$m$^2$s$^2$/rad]")
+            a.legend(fontsize=8)
+        ax[2, 0].set_title("costates of the top's angular velocity (Pontryagin)")
+        ax[2, 1].set_title("costates of the shell's angular velocity")
+        ax[2, 1].text(0.02, 0.02, f"$p_{{xy}}$ = ({p[0, -2]:.3g}, {p[0, -1]:.3g}) (constant)", fontsize=8,
+                      transform=ax[2, 1].transAxes)
+    else:
+        for a in ax[2]:
+            a.text(0.5, 0.5, "costates: run with Pontryagin", ha="center", transform=a.transAxes)
+            a.set_axis_off()
     fig.tight_layout()
     fig.savefig(out / "steer_sphere.png", dpi=110)
     plt.close(fig)
