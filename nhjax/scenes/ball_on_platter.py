@@ -25,9 +25,13 @@ above is re-derived from the Lagrangian and the no-slip condition.
 
 Parameters and defaults: m = 1, r = 1, J = 0.6, Omega = 2, g = 1 (the seed's
 dimensionless data: lengths in r, J in m r^2, Omega = 2, J = 0.6). The
-geometric constraints are enforced at acceleration level with Baumgarte terms
-``baumgarte=(alpha, beta)`` [1/s] (default (1, 1); (0, 0) turns them off) so
-their drift stays at the level of the integration error.
+geometric constraints (|p| = 1, u3 = r) hold at acceleration level; ``simulate``
+projects the state back onto them after every step, so Baumgarte terms
+(``baumgarte=(alpha, beta)`` [1/s]) are off by default: on top of the
+projection they only add stage accelerations the constraints do not call for
+(measured, 10 orbits of the centre: error 9.7e-6 with (1, 1) against 6.2e-6
+without at rtol 1e-8, 8.2e-8 against 2.9e-8 at 1e-10). Pass gains together
+with ``project_steps=False``.
 
 Exact solution (re-derived)
 ---------------------------
@@ -92,7 +96,7 @@ class BallOnPlatter(ConstrainedLagrangian):
     )  # fmt: skip
     control_dim: ClassVar[int] = 0
 
-    def __init__(self, m=1.0, r=1.0, J=0.6, Omega=2.0, g=1.0, baumgarte=(1.0, 1.0)):
+    def __init__(self, m=1.0, r=1.0, J=0.6, Omega=2.0, g=1.0, baumgarte=(0.0, 0.0)):
         positive("m", m)
         positive("r", r)
         positive("J", J)
