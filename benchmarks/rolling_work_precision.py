@@ -315,7 +315,7 @@ def disk_scene():
         ("RollingDisk Dopri8", disk, jnp.asarray(x0), {"solver": diffrax.Dopri8()}, errors_min, 8,
          "minimal coordinates, diffrax Dopri8"),
         ("RollingDiskQuaternion", quat, y0, {}, errors_quat, 5,
-         "R^3 x S^3, RKMK45, projected after each step (default), Baumgarte (1, 1)"),
+         "R^3 x S^3, RKMK45, projected after each step (default), no Baumgarte terms (default)"),
     ]
     for name, system, z0, kw, errs, order, note in formulations:
         run = jit_solver(system, T, **kw)
