@@ -72,3 +72,23 @@ def test_input_errors():
         nhjax.simulate_batch(cat, X, 1.0, in_axes={"params": 0})
     with pytest.raises(MemoryError, match="save fewer times"):
         nhjax.simulate_batch(cat, jnp.tile(X, (250_000, 1)), 1.0, saveat=10_000)
+
+
+def test_split_batch_on_two_workers_equals_one_chunk():
+    """A batch big enough to be split across workers (2 x 300 members, threads) gives per
+    member the result of one chunk on one thread and of a single simulate(), and keeps
+    the members in order; a bad member in the second chunk is named by its batch index."""
+    cat = FallingCat()
+    rng = np.random.default_rng(3)
+    X = jnp.tile(cat.initial_state(0.8, chi_dot=0.5), (600, 1))
+    X = X.at[:, 0].add(rng.uniform(-0.3, 0.3, 600)).at[:, 4].add(rng.uniform(-0.4, 2.0, 600))
+    kw = dict(control=CTRL, rtol=1e-9, atol=1e-9, track_work=False, diagnostics=False)
+    split = nhjax.simulate_batch(cat, X, 3.0, workers=2, **kw)
+    whole = nhjax.simulate_batch(cat, X, 3.0, workers=1, chunk_size=600, **kw)
+    np.testing.assert_allclose(split.xs, whole.xs, rtol=1e-13, atol=1e-13)
+    np.testing.assert_array_equal(split.num_accepted_steps, whole.num_accepted_steps)
+    for i in (0, 299, 300, 599):  # both sides of the chunk boundary
+        one = nhjax.simulate(cat, X[i], 3.0, saveat=2, **kw)
+        np.testing.assert_allclose(split.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+    with pytest.raises(nhjax.BatchError, match="member 457: x0 contains NaN"):
+        nhjax.simulate_batch(cat, X.at[457, 2].set(jnp.nan), 3.0, workers=2, **kw)
