@@ -361,8 +361,10 @@ def test_rotation_vector_chart_guard():
     np.testing.assert_allclose(g["shell rotation vector"], 2 * np.pi - 0.1 - 5.0, rtol=1e-14)
     np.testing.assert_allclose(g["top rotation vector"], 2 * np.pi - 0.1 - 6.0, rtol=1e-14)
     assert np.all(np.isfinite(jax.grad(lambda y: lag.guards(y)["top rotation vector"])(jnp.zeros(16))))
-    with pytest.raises(ValueError, match="chart_eps"):
-        ShellWithTopLagrangian(chart_eps=7.0)
+    assert ShellWithTopLagrangian(chart_eps=0.0).guards(x) == {}  # guard off on request
+    for bad in (7.0, -0.1):
+        with pytest.raises(ValueError, match="chart_eps"):
+            ShellWithTopLagrangian(chart_eps=bad)
 
 
 @pytest.mark.slow
