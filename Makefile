@@ -16,8 +16,10 @@ $(VENV)/.core: pyproject.toml constraints.txt | $(BIN)/python
 	$(PIP) -e '.[test]'
 	@touch $@
 
+# the peers extra (scipy, numba, casadi) so that every peer of BENCHMARKS.md runs in
+# the same `make bench` instead of printing "skipped"
 $(VENV)/.bench: $(VENV)/.core
-	$(PIP) -e '.[test,bench]'
+	$(PIP) -e '.[test,bench,peers]'
 	@touch $@
 
 demo: $(VENV)/.core

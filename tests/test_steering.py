@@ -47,7 +47,7 @@ class OnRobotState(eqx.Module):
 
 # A start near the optimum for degree-6 Chebyshev controls: its coefficients rounded to
 # 1e-3 N m (misses the target's rest state by ~1e-2; a solve from the linear guess, as in
-# experiments/steer_sphere.py and the slow tests, costs ~30 s more than this file may take).
+# experiments/steer_sphere.py and the slow tests, takes 60-75 s more under load: more than this file may take).
 WARM = [[0.084, 0.0, 0.0], [0.001, 0.247, -0.005], [0.075, -0.001, 0.0], [0.001, -0.008, 0.0],
         [-0.011, 0.0, 0.0], [0.0, 0.004, 0.001], [-0.003, 0.0, 0.0]]
 

@@ -60,7 +60,7 @@ every later torque, and the vertical angular momentum about the contact point
 inertia is not symmetric about the direction of travel) is changed only by the
 second-order term -mt (V x v_c) . gamma. ``controls.solve_direct`` (augmented
 Lagrangian, L-BFGS inner solves) crawls on this (measured: ~150 s per outer
-iteration, violation 2.5e-2 then 2.2e-3); ``solve_direct_newton`` (feasible-path
+iteration, violation 2.5e-2 then 2.2e-3); ``controls.solve_direct_newton`` (feasible-path
 Newton with second derivatives by differences of reverse-mode gradients) gets
 the optimum in 7-9 iterations: cost 0.0813126 (Chebyshev degree 6) and
 0.0812912 (degree 12) N^2 m^2 s. Along the optimum the free top turns by ~1 rad
