@@ -280,12 +280,13 @@ def simulate_batch(
 
     # Compile once, ahead of time, before any concurrency (every chunk has the same
     # shapes); with several devices, jit compiles per device on first use instead.
-    solve = _solve_chunk
+    solve, first_inputs = _solve_chunk, None
     if len(devices) == 1:
-        solve = _solve_chunk.lower(*chunk_inputs(0), t0a, t1a, options, guard_names, axes).compile()
+        first_inputs = chunk_inputs(0)  # kept for run(0): padded (and projected) once
+        solve = _solve_chunk.lower(*first_inputs, t0a, t1a, options, guard_names, axes).compile()
 
     def run(i):
-        s, x, c = chunk_inputs(i)
+        s, x, c = first_inputs if (i == 0 and first_inputs is not None) else chunk_inputs(i)
         out = solve(s, x, c, t0a, t1a, options, guard_names, axes)
         out = jax.block_until_ready(out)
         with lock:
