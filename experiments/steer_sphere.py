@@ -32,17 +32,15 @@ import json
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 import controls
-import nhjax
-from controls.problem import CostAugmented
 from controls.tasks import (
     linear_guess,
     rolling_residual,
+    simulate_with_impulse,
     solve_direct_newton,
     sphere_steering,
     sphere_steering_reduced,
@@ -52,21 +50,6 @@ from controls import newton as nt
 from nhjax.scenes import ShellWithTop
 
 OUT = Path(__file__).resolve().parent / "out"
-
-
-class TorqueImpulseRate(eqx.Module):
-    """R_top tau: the torque on the top in space axes (integrated alongside the state)."""
-
-    def __call__(self, t, x, u):
-        (_, _, Rt), _ = x
-        return Rt @ u
-
-
-class OnRobotState(eqx.Module):
-    control: object
-
-    def __call__(self, t, y):
-        return self.control(t, y[0])
 
 
 def warm_up(ocp, param, z, rtol):
@@ -103,9 +86,7 @@ def main(target=(0.5, 0.3), T=3.0, degree=12, heading=None, out=OUT, rtol=1e-10,
     # ------------------------------------------------------- tight re-simulation and checks
     n_save = 601
     t0 = time.perf_counter()
-    aug = CostAugmented(robot, TorqueImpulseRate())
-    traj = nhjax.simulate(aug, (ocp.x0, jnp.zeros(3)), T, control=OnRobotState(res.control),
-                          rtol=1e-12, atol=1e-12, saveat=n_save)
+    traj = simulate_with_impulse(ocp, res.control, saveat=n_save)
     t_check = time.perf_counter() - t0
     x, impulse = traj.xs
     (xy, Rsh, Rt), v = x

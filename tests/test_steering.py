@@ -13,10 +13,10 @@ import pytest
 
 import controls
 import nhjax
-from controls.problem import CostAugmented
 from controls.tasks import (
     linear_guess,
     rolling_residual,
+    simulate_with_impulse,
     solve_direct_newton,
     sphere_steering,
     sphere_steering_reduced,
@@ -28,21 +28,6 @@ from nhjax.scenes import ShellWithTop
 T = 3.0
 TARGET = (0.5, 0.3)
 DENSE = 601
-
-
-class TorqueImpulseRate(eqx.Module):
-    """Integrand of the torque impulse in space, R_top tau (integrated alongside the state)."""
-
-    def __call__(self, t, x, u):
-        (_, _, Rt), _ = x
-        return Rt @ u
-
-
-class OnRobotState(eqx.Module):
-    control: object
-
-    def __call__(self, t, y):
-        return self.control(t, y[0])
 
 
 # A start near the optimum for degree-6 Chebyshev controls: its coefficients rounded to
@@ -60,9 +45,7 @@ def optimum():
     res = solve_direct_newton(ocp, param, jnp.asarray(WARM).reshape(-1), ctol=1e-10, gtol=1e-7)
     # the optimum re-simulated at tight tolerance, saved densely, with the space torque
     # impulse int_0^t R_top tau dt integrated as extra states
-    aug = CostAugmented(robot, TorqueImpulseRate())
-    traj = nhjax.simulate(aug, (ocp.x0, jnp.zeros(3)), T, control=OnRobotState(res.control),
-                          rtol=1e-12, atol=1e-12, saveat=DENSE)
+    traj = simulate_with_impulse(ocp, res.control, saveat=DENSE)
     return robot, ocp, param, res, traj
 
 

@@ -87,8 +87,10 @@ from nhjax.lie import so3
 from nhjax.mechanics import AbstractSystem
 from nhjax.scenes import ShellWithTop, ShellWithTopReduced
 
+import nhjax
+
 from ..newton import solve_direct_newton
-from ..problem import OCP, ProblemError
+from ..problem import OCP, CostAugmented, ProblemError, _OnState
 from .somersault import Effort
 
 __all__ = [
@@ -98,6 +100,7 @@ __all__ = [
     "hanging_attitude",
     "linear_guess",
     "rolling_residual",
+    "simulate_with_impulse",
     "solve_direct_newton",
     "sphere_steering",
     "sphere_steering_reduced",
@@ -327,3 +330,20 @@ def _fit(param, ts, us):
     p0 = jnp.zeros(param.size)
     basis = jax.jacfwd(sig)(p0)
     return jnp.linalg.lstsq(basis, us.reshape(-1) - sig(p0))[0]
+
+
+class _TorqueImpulseRate(eqx.Module):
+    """R_top tau: the torque on the top in space axes [N m]."""
+
+    def __call__(self, t, x, u):
+        (_, _, Rt), _ = x
+        return Rt @ u
+
+
+def simulate_with_impulse(ocp: OCP, control, saveat, rtol=1e-12, atol=1e-12):
+    """``nhjax.simulate`` of a ``sphere_steering`` problem's robot under ``control`` (u(t, x)),
+    with the torque impulse in space int_0^t R_top tau dt [N m s] integrated alongside:
+    ``traj.xs`` is (robot states, impulse). Chaplygin's vector obeys K(t) - K(0) = -impulse(t)."""
+    aug = CostAugmented(ocp.system, _TorqueImpulseRate())
+    return nhjax.simulate(aug, (ocp.x0, jnp.zeros(3)), ocp.T, control=_OnState(control), rtol=rtol, atol=atol,
+                          saveat=saveat)
