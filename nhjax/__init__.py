@@ -22,6 +22,7 @@ from .errors import (  # noqa: E402
 )
 from .integrate import (  # noqa: E402
     BatchError,
+    DiscreteAdjoint,
     RKMK4,
     RKMK45,
     PiecewiseConstant,
@@ -35,6 +36,7 @@ from .integrate import (  # noqa: E402
 
 __all__ = [
     "BatchError",
+    "DiscreteAdjoint",
     "ChartSingularityError",
     "ConstraintViolationError",
     "IntegrationError",

@@ -1,5 +1,6 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
+from .adjoint import DiscreteAdjoint
 from .batch import BatchError, simulate_batch, stack
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
@@ -7,6 +8,7 @@ from .simulate import Trajectory, simulate
 
 __all__ = [
     "BatchError",
+    "DiscreteAdjoint",
     "LieODETerm",
     "PiecewiseConstant",
     "PiecewiseLinear",

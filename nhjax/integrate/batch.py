@@ -139,7 +139,7 @@ def simulate_batch(
     rtol: float = 1e-8,
     atol: float = 1e-8,
     dt0=None,
-    max_steps: int = 100_000,
+    max_steps: int | None = None,
     stepsize_controller=None,
     jump_ts=None,
     adjoint=None,

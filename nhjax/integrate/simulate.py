@@ -39,6 +39,7 @@ from ..errors import (
 )
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
+from .adjoint import DiscreteAdjoint, _Problem, discrete_solve
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
 
@@ -185,7 +186,6 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         sub = diffrax.SubSaveAt(t0=True, t1=True, fn=save_fn or _save_state)
     else:
         sub = diffrax.SubSaveAt(ts=ts, fn=save_fn or _save_state)
-    saveat = diffrax.SaveAt(subs=[sub, diffrax.SubSaveAt(t1=True)])
 
     event = None
     if static.guard_names:
@@ -204,26 +204,15 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
     progress_meter = (
         diffrax.TqdmProgressMeter() if static.progress else diffrax.NoProgressMeter()
     )
-    sol = diffrax.diffeqsolve(
-        term,
-        solver,
-        t0,
-        t1,
-        dt0,
-        y0,
-        args=(system, control),
-        saveat=saveat,
-        stepsize_controller=controller,
-        adjoint=adjoint,
-        event=event,
-        max_steps=static.max_steps,
-        throw=False,
-        progress_meter=progress_meter,
-    )
-    ts_saved = sol.ts[0]
-    ys = sol.ys[0]
-    t_final = sol.ts[1][-1]
-    x_end = sol.ys[1][0][-1] if track else jtu.tree_map(lambda a: a[-1], sol.ys[1])
+    problem = _Problem(term=term, solver=solver, controller=controller, event=event, sub=sub,
+                       progress_meter=progress_meter, t0=t0, t1=t1, dt0=dt0,
+                       max_steps=static.max_steps)
+    if isinstance(adjoint, DiscreteAdjoint):
+        sol = discrete_solve((y0, (system, control)), problem, adjoint)
+    else:
+        sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
+    ts_saved, ys, t_final = sol["ts"], sol["ys"], sol["t_final"]
+    x_end = sol["y_end"][0] if track else sol["y_end"]
     valid = ts_saved <= t_final
     if track:
         xs, work = ys
@@ -249,13 +238,13 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         invariants=invariants,
         invariant_drift=drift,
         constraint_drift=constraint_drift,
-        num_steps=sol.stats["num_steps"],
-        num_accepted_steps=sol.stats["num_accepted_steps"],
-        num_rejected_steps=sol.stats["num_rejected_steps"],
+        num_steps=sol["num_steps"],
+        num_accepted_steps=sol["num_accepted_steps"],
+        num_rejected_steps=sol["num_rejected_steps"],
         t_final=t_final,
         x_end=x_end,
-        result=sol.result,
-        event_mask=sol.event_mask,
+        result=sol["result"],
+        event_mask=sol["event_mask"],
         state_names=static.state_names,
     )
 
@@ -297,7 +286,10 @@ def _initial_report(system, control, x0, t0, project):
         x0 = system.project(t0, x0)
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jtu.tree_leaves(x0)]))
     residuals = {k: _max_abs(v) for k, v in system.constraints(t0, x0).items()}
-    return x0, finite, residuals, dict(system.guards(x0)), dict(system.regularity(t0, x0))
+    # the regularity margins are a check, not an output: out of the derivative (their SVD
+    # has no forward-mode rule, which would make every gradient through x0 fail)
+    margins = dict(system.regularity(t0, jax.lax.stop_gradient(x0)))
+    return x0, finite, residuals, dict(system.guards(x0)), margins
 
 
 def _check_inputs(system, control, x0, t0, constraint_tol, project):
@@ -375,6 +367,16 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
             stepsize_controller = diffrax.ConstantStepSize()
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
+    if isinstance(adjoint, DiscreteAdjoint):
+        if max_steps is None:
+            max_steps = adjoint.max_steps
+        if not _is_explicit(solver):
+            raise TypeError(
+                f"DiscreteAdjoint differentiates explicit Runge-Kutta steps; {type(solver).__name__} "
+                "is not one (use diffrax.RecursiveCheckpointAdjoint())"
+            )
+    elif max_steps is None:
+        max_steps = 100_000
 
     if track_work is None:
         track_work = control is not None and _defines_power(system)
@@ -406,7 +408,7 @@ def simulate(
     rtol: float = 1e-8,
     atol: float = 1e-8,
     dt0=None,
-    max_steps: int = 100_000,
+    max_steps: int | None = None,
     stepsize_controller=None,
     jump_ts=None,
     adjoint=None,
@@ -436,9 +438,14 @@ def simulate(
     rtol, atol : tolerances of the default ``diffrax.PIDController``.
     dt0 : initial step; required (and the step) for fixed-step solvers.
     max_steps : budget of solver steps; exhausting it raises ``IntegrationError``.
+        Default 100 000, or ``DiscreteAdjoint.max_steps`` (4096) with that adjoint,
+        whose differentiated solves store max_steps states.
     jump_ts : times at which the vector field is not smooth (steps land there).
-    adjoint : diffrax adjoint for reverse-mode gradients (default: recursive
-        checkpointing; ``diffrax.ForwardMode()`` for jvp/jacfwd).
+    adjoint : how simulate() is differentiated: ``nhjax.DiscreteAdjoint()`` (reverse
+        mode by the discrete adjoint of the Runge-Kutta steps: same gradient as the
+        default at a fraction of its cost, explicit solvers only), a diffrax adjoint
+        (default ``diffrax.RecursiveCheckpointAdjoint()``: differentiates diffrax's
+        loop itself), or ``diffrax.ForwardMode()`` for jvp/jacfwd.
     project : project x0 onto the constraint manifold instead of rejecting it.
     project_steps : project the state onto the constraint manifold after every
         step (``ProjectedSolver``), and the saved states too; removes the drift of
@@ -477,6 +484,12 @@ def simulate(
     if traced:
         return _runtime_checks(traj, static, on_guard)
     return _eager_checks(traj, system, control, static, on_guard)
+
+
+def _is_explicit(solver):
+    while isinstance(solver, ProjectedSolver):
+        solver = solver.solver
+    return isinstance(solver, (_AbstractRKMK, diffrax.AbstractERK))
 
 
 def _drifting_constraints(residuals) -> bool:

@@ -1,0 +1,268 @@
+"""``DiscreteAdjoint``: reverse-mode gradients through simulate() at a few forward solves.
+
+Differentiating diffrax's while loop directly (``RecursiveCheckpointAdjoint``)
+replays the whole solver machinery -- step-size controller, saving, event
+checks, loop bookkeeping -- under checkpointing, and on a small system costs
+50-150 forward solves (benchmarks/batch_throughput.py). What a gradient of a
+Runge-Kutta solution needs is much less: the accepted steps t_0 < t_1 < ... <
+t_M with their states y_k, and the vector-Jacobian product of each step map
+
+    y_{k+1} = Phi(t_k, t_{k+1}, y_k; p)                                  (1)
+
+taken backwards from k = M-1 to 0 (the discrete adjoint of the method:
+Hairer, Lubich & Wanner, Geometric Numerical Integration, sec. VI.6; Sandu,
+"On the properties of Runge-Kutta discrete adjoints", 2006):
+
+    lambda_k = (dPhi/dy_k)^T lambda_{k+1} + (saved outputs in step k),
+    dL/dp   += (dPhi/dp)^T lambda_{k+1}.
+
+diffrax stops gradients through the step-size controller, so the mesh is a
+constant of its derivative as well: this adjoint is the exact derivative of the
+same discrete solution (agreement with ``RecursiveCheckpointAdjoint`` to
+round-off is a test). Saved states between steps are the solver's dense output
+on step k; their cotangents enter that step's VJP through the dense-output
+coefficients.
+
+Cost and memory: the forward pass records every accepted step (``max_steps`` x
+state size floats per solve, only when differentiated: a forward-only call
+records nothing); the backward pass is one VJP of one step per accepted step.
+Limits (checked or documented):
+
+* reverse mode only (``jax.grad``/``jax.vjp``); use ``diffrax.ForwardMode()`` for
+  ``jax.jvp``/``jax.jacfwd``;
+* the times t0, t1 and the save times are not differentiated;
+* a solve stopped by a chart guard (``on_guard="stop"``) ends at the event time
+  t* found inside the last step; this adjoint differentiates that last piece as
+  a step from t_{M-1} to t* (the forward took the dense output there), so the
+  gradient belongs to a solution that differs from the returned one by the
+  local error of one step;
+* the solver's state must be a function of (t, y) alone (explicit Runge-Kutta,
+  FSAL or not: RKMK45, RKMK4, diffrax's explicit tableaus, ``ProjectedSolver``
+  around them).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+from jax.flatten_util import ravel_pytree
+
+__all__ = ["DiscreteAdjoint"]
+
+
+class DiscreteAdjoint(eqx.Module):
+    """Reverse-mode gradients of ``nhjax.simulate`` by the discrete adjoint of the
+    Runge-Kutta steps (see the module docstring for the method and its limits).
+
+    Pass as ``simulate(..., adjoint=nhjax.DiscreteAdjoint())``. The forward pass
+    of a differentiated solve stores up to ``max_steps`` accepted states; a
+    solve that is not differentiated stores nothing.
+
+    jacobians : how the step Jacobians dPhi/dy (n x n) and dPhi/dp (n x P) are
+        formed, for n state numbers and P differentiated parameters: "forward"
+        (n + P tangent directions), "reverse" (n cotangent directions, cost
+        independent of P) or "auto" (forward while P <= 2 n and the step has
+        forward-mode rules, else reverse).
+    chunk : steps whose Jacobians are evaluated together in one vectorised call
+        (memory: chunk x n x (n + P) floats).
+    max_steps : simulate()'s default step budget under this adjoint (each
+        differentiated solve records max_steps x n floats; filling a larger
+        buffer costs time on every gradient).
+    """
+
+    jacobians: str = eqx.field(default="auto", static=True)
+    chunk: int = eqx.field(default=64, static=True)
+    max_steps: int = eqx.field(default=4096, static=True)
+
+    def __check_init__(self):
+        if self.jacobians not in ("auto", "forward", "reverse"):
+            raise ValueError(f"jacobians must be 'auto', 'forward' or 'reverse', got {self.jacobians!r}")
+
+
+def _save_state(t, y, args):
+    return y
+
+
+class _Problem(eqx.Module):
+    """Everything a solve needs besides y0 and args (which carry the gradients)."""
+
+    term: Any
+    solver: Any
+    controller: Any
+    event: Any
+    sub: Any  # the user's SubSaveAt (ts=..., or t0 and t1)
+    progress_meter: Any
+    t0: Any
+    t1: Any
+    dt0: Any
+    max_steps: int = eqx.field(static=True)
+
+    def run(self, y0, args, record: bool, adjoint=None):
+        subs = [self.sub, diffrax.SubSaveAt(t1=True)]
+        if record:
+            subs.append(diffrax.SubSaveAt(steps=True, fn=_save_state))
+        sol = diffrax.diffeqsolve(
+            self.term, self.solver, self.t0, self.t1, self.dt0, y0, args=args,
+            saveat=diffrax.SaveAt(subs=subs), stepsize_controller=self.controller,
+            adjoint=adjoint or (diffrax.ForwardMode() if record else diffrax.RecursiveCheckpointAdjoint()), event=self.event,
+            max_steps=self.max_steps, throw=False, progress_meter=self.progress_meter,
+        )
+        out = dict(
+            ts=sol.ts[0], ys=sol.ys[0], t_final=sol.ts[1][-1],
+            y_end=jtu.tree_map(lambda a: a[-1], sol.ys[1]),
+            num_steps=sol.stats["num_steps"], num_accepted_steps=sol.stats["num_accepted_steps"],
+            num_rejected_steps=sol.stats["num_rejected_steps"], result=sol.result,
+            event_mask=sol.event_mask,
+        )
+        steps = (sol.ts[2], sol.ys[2]) if record else None
+        return out, steps
+
+
+@eqx.filter_custom_vjp
+def discrete_solve(diff, problem: _Problem, adjoint: DiscreteAdjoint):
+    """diffrax solve of ``problem`` from y0 with args, ``diff = (y0, args)``; its
+    reverse-mode derivative is the discrete adjoint (module docstring)."""
+    y0, args = diff
+    out, _ = problem.run(y0, args, record=False)
+    return out
+
+
+@discrete_solve.def_fwd
+def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
+    del perturbed, adjoint
+    y0, args = diff
+    out, steps = problem.run(y0, args, record=True)
+    return out, (steps, out["t_final"])
+
+
+def _zeros_if_none(ct, like):
+    if ct is None:
+        return jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), like)
+    return jtu.tree_map(lambda c, a: jnp.zeros(a.shape, a.dtype) if c is None else c, ct, like,
+                        is_leaf=lambda x: x is None)
+
+
+@discrete_solve.def_bwd
+def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
+    (ts_rec, ys_rec), t_final = residuals
+    y0, args = diff
+    # Only the perturbed parameters get cotangents: fewer directions for the step Jacobians.
+    dyn = eqx.filter(args, perturbed[1])
+    stat = eqx.filter(args, perturbed[1], inverse=True)
+    term, solver, sub = problem.term, problem.solver, problem.sub
+    t0 = jnp.asarray(problem.t0, float)
+
+    # Mesh t_0 .. t_M and states y_0 .. y_M: t_0, y_0 are the inputs, the recorded buffer
+    # holds t_1 .. t_M, y_1 .. y_M and then inf up to max_steps; everything below reads
+    # only the rows it needs (the buffer can be large: max_steps x n).
+    C = adjoint.chunk
+    y_flat0, unravel_y = ravel_pytree(y0)
+    p_flat, unravel_p = ravel_pytree(dyn)
+    n, P = y_flat0.size, p_flat.size
+    if P == 0:  # nothing but the initial state is differentiated (ravel gives float32[0])
+        p_flat = jnp.zeros((0,), y_flat0.dtype)
+    M = jnp.searchsorted(ts_rec, jnp.inf, side="left")  # sorted, inf-padded
+
+    def t_at(k):
+        return jnp.where(k == 0, t0, ts_rec[jnp.clip(k - 1, 0, ts_rec.size - 1)])
+
+    def y_at(k):  # k: 1-D array of step indices -> (len(k), n) flat states
+        rows = jtu.tree_map(lambda a: a[jnp.clip(k - 1, 0, ts_rec.size - 1)], ys_rec)
+        flat = jax.vmap(lambda y: ravel_pytree(y)[0])(rows)
+        return jnp.where((k == 0)[:, None], y_flat0, flat)
+
+    y_M = y_at(M[None])[0]
+
+    def step(yf, pf, tk, tk1):
+        y, a = unravel_y(yf), eqx.combine(unravel_p(pf), stat)
+        state = solver.init(term, tk, tk1, y, a)
+        y1, _, dense, _, _ = solver.step(term, tk, tk1, y, a, state, False)
+        return ravel_pytree(y1)[0], dense
+
+    def saved_at(yf, pf, tk, tk1, s):
+        """The saved output at time s in step k: fn(s, dense output of step k at s)."""
+        _, dense = step(yf, pf, tk, tk1)
+        interp = solver.interpolation_cls(t0=tk, t1=tk1, **dense)
+        return sub.fn(s, interp.evaluate(s), eqx.combine(unravel_p(pf), stat))
+
+    def fn_vjp(t, yf, ct):
+        f = lambda yy, pf: sub.fn(t, unravel_y(yy), eqx.combine(unravel_p(pf), stat))  # noqa: E731
+        return jax.vjp(f, yf, p_flat)[1](ct)
+
+    # lam: cotangent of y_M; ct_p: of the parameters.
+    lam = ravel_pytree(_zeros_if_none(grad_out["y_end"], unravel_y(y_M)))[0]
+    ct_p = jnp.zeros_like(p_flat)
+    g_ys = grad_out["ys"]  # None when no saved output is differentiated
+    if g_ys is not None and any(g is None for g in jtu.tree_leaves(g_ys, is_leaf=lambda x: x is None)):
+        g_ys = _zeros_if_none(g_ys, eqx.filter_eval_shape(lambda: problem.run(y0, args, False)[0]["ys"]))
+    ends_only = sub.ts is None
+    A_k = A_v = None  # saved outputs inside steps: step index and cotangent on y_k
+    if g_ys is not None and ends_only:  # saved outputs are fn(t0, y_0) and fn(t_final, y_M)
+        a, b = fn_vjp(t_final, y_M, jtu.tree_map(lambda g: g[1], g_ys))
+        lam, ct_p = lam + a, ct_p + b
+    elif g_ys is not None:
+        # Every saved output depends on the state at the start of its step and on p:
+        # their VJPs are independent of the recursion, so take them all at once.
+        S = jnp.asarray(sub.ts, float)
+        valid = S <= t_final  # saved entries past a guard's stop are inf in the output
+        g_ys = jtu.tree_map(lambda g: jnp.where(valid.reshape((-1,) + (1,) * (g.ndim - 1)), g, 0.0), g_ys)
+        # step of each save time: t_k < s <= t_{k+1} (s = t_0 in step 0)
+        A_k = jnp.clip(jnp.searchsorted(ts_rec, S, side="left"), 0, M - 1)
+        tk, tk1 = t_at(A_k), t_at(A_k + 1)
+        s = jnp.clip(S, tk, tk1)
+
+        def one(yf, tk, tk1, s, g):
+            return jax.vjp(lambda yy, pf: saved_at(yy, pf, tk, tk1, s), yf, p_flat)[1](g)
+
+        A_v, b = jax.vmap(one)(y_at(A_k), tk, tk1, s, g_ys)
+        ct_p = ct_p + jnp.sum(b, axis=0)
+
+    # Step Jacobians J_k = dPhi/dy_k (n x n) and dPhi/dp (n x P), a chunk of C steps at a
+    # time: they depend only on the recorded states, so each chunk is one vectorised
+    # evaluation (on the CPU a per-step Jacobian or VJP would pay XLA's per-kernel
+    # overhead ~100 times per step); then the recursion lam_k = J_k^T lam_{k+1} + A_k.
+    def step_jacobians(yf, tk, tk1, jac=None):
+        jac = jac or (jax.jacfwd if forward else jax.jacrev)
+        return jac(lambda yy, pf: step(yy, pf, tk, tk1)[0], argnums=(0, 1))(yf, p_flat)
+
+    forward = adjoint.jacobians == "forward" or (adjoint.jacobians == "auto" and P <= 2 * n)
+    if forward and adjoint.jacobians == "auto":
+        try:  # some steps have no forward-mode rule (e.g. an SVD inside a projection)
+            jax.eval_shape(lambda: step_jacobians(y_flat0, t0, t0, jax.jacfwd))
+        except NotImplementedError:
+            forward = False
+
+    eye = jnp.eye(n)
+
+    def chunk_body(carry):
+        c, lam, ct_p = carry
+        start = c * C
+        ks = start + jnp.arange(C)
+        ok = ks < M
+        yk = jnp.where(ok[:, None], y_at(ks), y_flat0)
+        tk = jnp.where(ok, t_at(ks), t0)
+        tk1 = jnp.where(ok, t_at(ks + 1), t0)
+        Jy, Jp = jax.vmap(step_jacobians)(yk, tk, tk1)
+        Jy = jnp.where(ok[:, None, None], Jy, eye)
+        Jp = jnp.where(ok[:, None, None], Jp, 0.0)
+        extra = (jnp.zeros((C, n)) if A_k is None else
+                 jax.ops.segment_sum(A_v, A_k - start, num_segments=C))
+
+        def back(lam_next, inp):
+            J, e = inp
+            return J.T @ lam_next + e, lam_next
+
+        lam, lam_next = jax.lax.scan(back, lam, (Jy, extra), reverse=True, unroll=8)
+        return c - 1, lam, ct_p + jnp.einsum("knp,kn->p", Jp, lam_next)
+
+    n_chunks = (M + C - 1) // C
+    _, lam, ct_p = jax.lax.while_loop(lambda c: c[0] >= 0, chunk_body, (n_chunks - 1, lam, ct_p))
+    if g_ys is not None and ends_only:
+        a, b = fn_vjp(t0, y_flat0, jtu.tree_map(lambda g: g[0], g_ys))
+        lam, ct_p = lam + a, ct_p + b
+    return unravel_y(lam), unravel_p(ct_p)
