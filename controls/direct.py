@@ -2,7 +2,8 @@
 
 Single shooting: the parameters p of a control parametrization define u(t);
 one simulate() gives the cost J(p) and the terminal residual psi(p), and jax
-gives their gradients (diffrax's recursive-checkpoint adjoint).
+gives their gradients (nhjax.DiscreteAdjoint, the discrete adjoint of the
+Runge-Kutta steps).
 
 Multiple shooting: the horizon is cut into S segments; the unknowns are the
 control parameters and the states at the segment starts; segments are solved
@@ -88,7 +89,7 @@ class _Transcription(eqx.Module):
         def seg(xs, ta, tb):
             tr = nhjax.simulate(aug, (xs, jnp.zeros(())), tb, t0=ta, control=_OnState(control),
                                 rtol=self.rtol, atol=self.atol, saveat=2, track_work=False,
-                                on_guard="stop", diagnostics=False)
+                                on_guard="stop", diagnostics=False, adjoint=nhjax.DiscreteAdjoint())
             return tr.xs[0][-1], jnp.where(tr.t_final < tb, jnp.inf, tr.xs[1][-1])
 
         ends, costs = jax.vmap(seg)(nodes, edges[:-1], edges[1:])

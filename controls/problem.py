@@ -156,13 +156,17 @@ class _OnState(eqx.Module):
         return self.control(t, y[0])
 
 
-def rollout(ocp: OCP, control, *, rtol=1e-9, atol=1e-9, saveat=2, max_steps=100_000, adjoint=None,
+def rollout(ocp: OCP, control, *, rtol=1e-9, atol=1e-9, saveat=2, max_steps=None, adjoint=None,
             diagnostics=False, **kw):
     """Simulate ``control`` (callable u(t, x)) on the problem.
 
     Returns (traj, cost, psi): the trajectory of (x, J) pairs, the total cost
-    Phi(x(T)) + J(T), and the terminal-constraint residual.
+    Phi(x(T)) + J(T), and the terminal-constraint residual. Reverse-mode
+    gradients go through ``nhjax.DiscreteAdjoint`` unless ``adjoint`` says
+    otherwise (``max_steps`` None: that adjoint's budget, 4096 steps).
     """
+    if adjoint is None:
+        adjoint = nhjax.DiscreteAdjoint()
     aug = CostAugmented(ocp.system, ocp.running_cost)
     y0 = (ocp.x0, jnp.zeros(()))
     traj = nhjax.simulate(aug, y0, ocp.T, control=_OnState(control), rtol=rtol, atol=atol,

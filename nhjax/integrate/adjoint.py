@@ -63,11 +63,17 @@ class DiscreteAdjoint(eqx.Module):
     of a differentiated solve stores up to ``max_steps`` accepted states; a
     solve that is not differentiated stores nothing.
 
-    jacobians : how the step Jacobians dPhi/dy (n x n) and dPhi/dp (n x P) are
-        formed, for n state numbers and P differentiated parameters: "forward"
-        (n + P tangent directions), "reverse" (n cotangent directions, cost
-        independent of P) or "auto" (forward while P <= 2 n and the step has
-        forward-mode rules, else reverse).
+    jacobians : how lam_k = (dPhi/dy_k)^T lam_{k+1} is formed, for n state numbers
+        and P differentiated parameters: "forward" or "reverse" build the step
+        Jacobians dPhi/dy (n x n) and dPhi/dp (n x P) for a chunk of steps at once
+        (n + P tangent or n cotangent directions per step, vectorised over the
+        chunk); "vjp" takes one vector-Jacobian product per step in sequence
+        (cost independent of n and P, but each VJP pays the CPU's per-kernel
+        overhead); "auto": forward while n + P <= ``max_jacobian_directions`` and
+        the step has forward-mode rules, else vjp. Measured (benchmarks/
+        batch_throughput.py and the steering task): the falling cat (n = 5, P = 2)
+        is fastest with chunked Jacobians, the spherical robot (n = 29, P = 21)
+        with VJPs.
     chunk : steps whose Jacobians are evaluated together in one vectorised call
         (memory: chunk x n x (n + P) floats).
     max_steps : simulate()'s default step budget under this adjoint (each
@@ -77,11 +83,12 @@ class DiscreteAdjoint(eqx.Module):
 
     jacobians: str = eqx.field(default="auto", static=True)
     chunk: int = eqx.field(default=64, static=True)
+    max_jacobian_directions: int = eqx.field(default=16, static=True)
     max_steps: int = eqx.field(default=4096, static=True)
 
     def __check_init__(self):
-        if self.jacobians not in ("auto", "forward", "reverse"):
-            raise ValueError(f"jacobians must be 'auto', 'forward' or 'reverse', got {self.jacobians!r}")
+        if self.jacobians not in ("auto", "forward", "reverse", "vjp"):
+            raise ValueError(f"jacobians must be 'auto', 'forward', 'reverse' or 'vjp', got {self.jacobians!r}")
 
 
 def _save_state(t, y, args):
@@ -230,12 +237,22 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
         jac = jac or (jax.jacfwd if forward else jax.jacrev)
         return jac(lambda yy, pf: step(yy, pf, tk, tk1)[0], argnums=(0, 1))(yf, p_flat)
 
-    forward = adjoint.jacobians == "forward" or (adjoint.jacobians == "auto" and P <= 2 * n)
-    if forward and adjoint.jacobians == "auto":
-        try:  # some steps have no forward-mode rule (e.g. an SVD inside a projection)
-            jax.eval_shape(lambda: step_jacobians(y_flat0, t0, t0, jax.jacfwd))
-        except NotImplementedError:
-            forward = False
+    mode = adjoint.jacobians
+    if mode == "auto":
+        mode = "forward" if n + P <= adjoint.max_jacobian_directions else "vjp"
+        if mode == "forward":
+            try:  # some steps have no forward-mode rule (e.g. an SVD inside a projection)
+                jax.eval_shape(lambda: step_jacobians(y_flat0, t0, t0, jax.jacfwd))
+            except NotImplementedError:
+                mode = "vjp"
+    forward = mode == "forward"
+
+    if mode == "vjp":
+        lam, ct_p = _sequential_vjps(step, y_at, t_at, M, lam, ct_p, p_flat, A_k, A_v)
+        if g_ys is not None and ends_only:
+            a, b = fn_vjp(t0, y_flat0, jtu.tree_map(lambda g: g[0], g_ys))
+            lam, ct_p = lam + a, ct_p + b
+        return unravel_y(lam), unravel_p(ct_p)
 
     eye = jnp.eye(n)
 
@@ -266,3 +283,24 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
         a, b = fn_vjp(t0, y_flat0, jtu.tree_map(lambda g: g[0], g_ys))
         lam, ct_p = lam + a, ct_p + b
     return unravel_y(lam), unravel_p(ct_p)
+
+
+def _sequential_vjps(step, y_at, t_at, M, lam, ct_p, p_flat, A_k, A_v):
+    """lam_k = J_k^T lam_{k+1} + A_k by one VJP of the step per accepted step, k = M-1 .. 0
+    (cost independent of n and P; the choice for large states)."""
+
+    def body(c):
+        k, j, lam, ct_p = c
+        tk, tk1 = t_at(k), t_at(k + 1)
+        yk = y_at(k[None])[0]
+        _, vjp = jax.vjp(lambda yy, pf: step(yy, pf, tk, tk1)[0], yk, p_flat)
+        a, b = vjp(lam)
+        if A_k is not None:  # saved outputs of step k (A_k is sorted)
+            j, a = jax.lax.while_loop(
+                lambda ic: (ic[0] >= 0) & (A_k[jnp.maximum(ic[0], 0)] == k),
+                lambda ic: (ic[0] - 1, ic[1] + A_v[ic[0]]), (j, a))
+        return k - 1, j, a, ct_p + b
+
+    j0 = jnp.asarray(-1 if A_k is None else A_k.shape[0] - 1)
+    _, _, lam, ct_p = jax.lax.while_loop(lambda c: c[0] >= 0, body, (M - 1, j0, lam, ct_p))
+    return lam, ct_p
