@@ -164,6 +164,41 @@ def _diagnostics(system, control, x0, t0, ts_saved, x_safe, valid, work, track):
     return invariants, cons, us
 
 
+def _diagnose(system, control, x0, t0, ts_saved, xs, t_final, work, track):
+    """Diagnostics on the saved points (entries past t_final are masked out):
+    invariants, their drift, constraint residuals, controls."""
+    valid = ts_saved <= t_final
+    x_safe = jtu.tree_map(
+        lambda a, a0: jnp.where(valid.reshape((-1,) + (1,) * (a.ndim - 1)), a, a0[None]), xs, x0)
+    invariants, cons, us = _diagnostics(system, control, x0, t0, ts_saved, x_safe, valid, work, track)
+    drift = {k: jnp.max(jnp.abs(v - v[0])) for k, v in invariants.items()}
+    return invariants, drift, {k: _max_abs(v) for k, v in cons.items()}, us
+
+
+_diagnose_jit = eqx.filter_jit(_diagnose)
+
+
+def _warm_diagnostics(system, control, x0, t0, ts, track):
+    """Compile the eager path's diagnostics program (run on zeros of the right shapes),
+    so that a first simulate() compiles it while _solve compiles."""
+    n = ts.shape[0]
+    xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
+    work = jnp.zeros(n) if track else None
+    jax.block_until_ready(_diagnose_jit(system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track))
+
+
+_WARM_POOL = None
+
+
+def _warm_pool():
+    global _WARM_POOL
+    if _WARM_POOL is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _WARM_POOL = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nhjax-compile")
+    return _WARM_POOL
+
+
 @eqx.filter_jit
 def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static):
     track = static.track_work
@@ -213,23 +248,15 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
     ts_saved, ys, t_final = sol["ts"], sol["ys"], sol["t_final"]
     x_end = sol["y_end"][0] if track else sol["y_end"]
-    valid = ts_saved <= t_final
     if track:
         xs, work = ys
     else:
         xs, work = ys, None
 
-    # Diagnostics on the saved points (entries past t_final are masked out).
-    x_safe = jtu.tree_map(
-        lambda a, a0: jnp.where(valid.reshape((-1,) + (1,) * (a.ndim - 1)), a, a0[None]),
-        xs,
-        x0,
-    )
-    invariants, cons, us = {}, {}, None
+    invariants, drift, constraint_drift, us = {}, {}, {}, None
     if static.diagnostics:
-        invariants, cons, us = _diagnostics(system, control, x0, t0, ts_saved, x_safe, valid, work, track)
-    drift = {k: jnp.max(jnp.abs(v - v[0])) for k, v in invariants.items()}
-    constraint_drift = {k: _max_abs(v) for k, v in cons.items()}
+        invariants, drift, constraint_drift, us = _diagnose(
+            system, control, x0, t0, ts_saved, xs, t_final, work, track)
     return Trajectory(
         ts=ts_saved,
         xs=xs,
@@ -477,10 +504,21 @@ def simulate(
         jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
         progress=progress, diagnostics=diagnostics,
     )
-    traj = _solve(
-        system, control, x0, jnp.asarray(t0, float), jnp.asarray(t1, float), ts,
-        solver, stepsize_controller, adjoint, dt0, static,
-    )
+    t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
+    if traced or not static.diagnostics:
+        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static)
+    else:
+        # Eager call: the diagnostics are a second program, compiled in a thread while
+        # the solve compiles (XLA releases the GIL), then run on the solution.
+        track = static.track_work
+        warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
+        core = dataclasses.replace(static, diagnostics=False)
+        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core)
+        warm.result()
+        invariants, drift, cons, us = _diagnose_jit(
+            system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track)
+        traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
+                                   constraint_drift=cons, us=us)
     if traced:
         return _runtime_checks(traj, static, on_guard)
     return _eager_checks(traj, system, control, static, on_guard)
