@@ -134,6 +134,7 @@ def gradients(cat, ctrl, x0, t1):
     for name, adj, mode in [
         ("reverse, nhjax.DiscreteAdjoint", nhjax.DiscreteAdjoint(), "rev"),
         ("reverse, DiscreteAdjoint(jacobians='reverse')", nhjax.DiscreteAdjoint(jacobians="reverse"), "rev"),
+        ("reverse, DiscreteAdjoint(jacobians='vjp')", nhjax.DiscreteAdjoint(jacobians="vjp"), "rev"),
         ("reverse, recursive checkpoint", diffrax.RecursiveCheckpointAdjoint(), "rev"),
         ("reverse, backsolve", diffrax.BacksolveAdjoint(), "rev"),
         ("forward mode", diffrax.ForwardMode(), "fwd"),

@@ -1,0 +1,141 @@
+"""Compile time of simulate() per scene (issue 4: "compile time per scene", goal < 3 s).
+
+Each scene runs in a fresh Python process (what a user meets in a new notebook:
+no jit cache, no persistent compilation cache), from a representative state
+with default settings (rtol = atol = 1e-8, 101 saved times, diagnostics on):
+
+* first simulate() call: tracing + compiling every program it needs + one run;
+* second call: the run alone (median of 5), and the accepted steps, so the
+  compile cost can be read against the work it buys.
+
+Writes experiments/out/bench/compile_times.{json,csv,png} and prints the table
+with the load average at start and end (the machine may be shared).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE.parent / "experiments" / "out" / "bench"
+
+# scene -> (source of the case: builds `system`, `x0`, `t1` and `control`)
+CASES = {
+    "FallingCat": """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5); t1 = 10.0
+control = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])""",
+    "FallingCatAttitudes": """
+system = S.FallingCat().attitude_model(); x0 = system.initial_state(0.8, chi_dot=0.5); t1 = 10.0
+control = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])""",
+    "Skate": """
+system = S.Skate(); x0 = system.initial_state(speed=1.0, phi_dot=2.0); t1 = 10.0""",
+    "SkateSE2": """
+system = S.SkateSE2(); x0 = system.initial_state(speed=1.0, phi_dot=2.0); t1 = 10.0""",
+    "BallOnPlatter": """
+system = S.BallOnPlatter(); x0 = system.initial_state(); t1 = 10.0""",
+    "RollingDisk": """
+system = S.RollingDisk(); x0 = system.initial_state(theta=0.3, phi_dot=0.4, theta_dot=0.2, psi_dot=1.5); t1 = 10.0""",
+    "RollingDiskQuaternion": """
+disk = S.RollingDisk(); system = disk.quaternion_model(); t1 = 10.0
+x0 = disk.to_quaternion_state(disk.initial_state(theta=0.3, phi_dot=0.4, theta_dot=0.2, psi_dot=1.5))""",
+    "TwoWheeledCart": """
+system = S.TwoWheeledCart(); x0 = system.initial_state(speed=1.0, theta_dot=0.5); t1 = 10.0""",
+    "ShellWithTop": """
+system = S.ShellWithTop(); x0 = system.initial_state(top_omega=(0.0, 0.0, 3.0)); t1 = 3.0
+control = nhjax.Sinusoids(np.zeros(3), [0.02, -0.01, 0.015], [1.1, 0.7, 2.0], [0.0, 0.4, 1.0])""",
+    "ShellWithTopReduced": """
+system = S.ShellWithTopReduced(); x0 = system.initial_state([1.0, 2.0, 3.0]); t1 = 10.0""",
+    "ShellWithSuslovHinge": """
+system = S.ShellWithSuslovHinge(); x0 = system.initial_state([0.3, 0.2, 1.0], Omega12=(0.1, -0.2)); t1 = 10.0""",
+    "SuslovBundle": """
+system = S.SuslovBundle(); x0 = system.initial_state([0.3, 0.2, 1.0], Omega12=(0.1, -0.2)); t1 = 10.0""",
+}
+
+CHILD = """
+import time, json
+t_import = time.perf_counter()
+import numpy as np, jax
+import nhjax
+import nhjax.scenes as S
+t_import = time.perf_counter() - t_import
+control = None
+{case}
+t = time.perf_counter()
+tr = nhjax.simulate(system, x0, t1, control=control)
+jax.block_until_ready(tr.xs)
+first = time.perf_counter() - t
+runs = []
+for _ in range(5):
+    t = time.perf_counter()
+    jax.block_until_ready(nhjax.simulate(system, x0, t1, control=control).xs)
+    runs.append(time.perf_counter() - t)
+print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s=t_import,
+                      steps=int(tr.num_accepted_steps), t1=float(t1))))
+"""
+
+
+def measure(name: str) -> dict:
+    out = subprocess.run([sys.executable, "-c", CHILD.format(case=CASES[name])], capture_output=True,
+                         text=True, env=dict(os.environ, JAX_ENABLE_COMPILATION_CACHE="false"))
+    if out.returncode != 0:
+        return dict(scene=name, error=out.stderr.strip().splitlines()[-1])
+    return dict(scene=name, **json.loads(out.stdout.strip().splitlines()[-1]))
+
+
+def plot(rows, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in rows if "error" not in r]
+    fig, ax = plt.subplots(figsize=(7, 0.35 * len(rows) + 1.2))
+    names = [r["scene"] for r in rows]
+    ax.barh(names, [r["first_call_s"] - r["run_s"] for r in rows], label="first call - run (compile)")
+    ax.axvline(3.0, color="k", ls="--", lw=1, label="goal 3 s")
+    ax.set(xlabel="seconds", title="simulate(): compile time per scene (fresh process)")
+    ax.invert_yaxis()
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main():
+    OUT.mkdir(parents=True, exist_ok=True)
+    load_start = os.getloadavg()
+    rows = []
+    print(f"{'scene':24s} {'compile s':>10s} {'run ms':>9s} {'steps':>6s}")
+    for name in CASES:
+        r = measure(name)
+        rows.append(r)
+        if "error" in r:
+            print(f"{name:24s} failed: {r['error']}")
+            continue
+        r["compile_s"] = r["first_call_s"] - r["run_s"]
+        print(f"{name:24s} {r['compile_s']:10.2f} {r['run_s'] * 1e3:9.2f} {r['steps']:6d}", flush=True)
+    load_end = os.getloadavg()
+    ok = [r for r in rows if "error" not in r]
+    print(f"under 3 s: {sum(r['compile_s'] < 3 for r in ok)} of {len(ok)} scenes; "
+          f"load average start {load_start[0]:.2f}, end {load_end[0]:.2f}")
+    meta = dict(command="python benchmarks/compile_times.py", platform=platform.platform(),
+                cpu_count=os.cpu_count(), load_average_start=list(load_start), load_average_end=list(load_end),
+                measured=time.strftime("%Y-%m-%d %H:%M"))
+    (OUT / "compile_times.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
+    with open(OUT / "compile_times.csv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["scene", "compile_s", "first_call_s", "run_s", "steps", "t1", "import_s"],
+                           extrasaction="ignore")
+        w.writeheader()
+        w.writerows(ok)
+    plot(rows, OUT / "compile_times.png")
+    print(f"written: {OUT}/compile_times.json, .csv, .png")
+
+
+if __name__ == "__main__":
+    main()
