@@ -89,6 +89,8 @@ class BallOnPlatter(ConstrainedLagrangian):
     Omega: jax.Array
     g: jax.Array
     n: int = eqx.field(static=True, default=7)
+    # stages unrolled: 10.3 ms per 10 s run against 13.4 ms scanned (compile 6.8 s vs 4.6 s)
+    large_vector_field: ClassVar[bool] = False
 
     state_names: ClassVar[tuple] = (
         "u1", "u2", "u3", "p0", "p1", "p2", "p3",

@@ -432,6 +432,9 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
 
     state_names: ClassVar[tuple] = ()
     control_dim: ClassVar[int] = 2
+    # stages in a lax.scan: first simulate() 6.1 -> 4.3 s, and runs faster too (6.7 -> 4.5 ms
+    # for 10 s of the benchmark's torque motion)
+    large_vector_field: ClassVar[bool] = True
 
     def __init__(self, I1, lam, B, mass=1.0, chart_eps=1e-3):
         self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
