@@ -89,6 +89,11 @@ def test_same_result_under_jit_and_runtime_errors():
     np.testing.assert_allclose(run(x0, jnp.asarray(0.05)), eager.xs, atol=1e-14)
     # the damping gain removes energy: the work is negative and balances the energy change
     assert float(eager.work[-1]) < 0 and float(eager.invariant_drift["energy - work"]) < 1e-7
+    # tolerances as traced arguments (one compiled sweep over rtol), x0 a closed-over constant
+    by_tol = jax.jit(lambda tol: nhjax.simulate(cat, x0, 2.0, control=Gain(jnp.asarray(0.05)), saveat=5,
+                                                rtol=tol, atol=tol).xs)
+    np.testing.assert_allclose(by_tol(1e-8), eager.xs, atol=1e-14)
+    assert float(jnp.max(jnp.abs(by_tol(1e-4) - eager.xs))) > 1e-9  # the tolerance does reach the solve
     bad = jax.jit(lambda x: nhjax.simulate(cat, x, 2.0, max_steps=3).xs)
     with pytest.raises(Exception, match="max_steps exhausted, or NaN"):
         jax.block_until_ready(bad(x0))

@@ -336,7 +336,7 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
         system, control, x0, jnp.asarray(t0, float), project
     )
     guard_names, constrained = tuple(guards), _drifting_constraints(residuals)
-    if _is_traced(x0, system, control):
+    if _is_traced(x0, system, control, finite):  # under an outer jit everything is traced
         return x0p, guard_names, constrained
     finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
     if not finite:
@@ -490,7 +490,8 @@ def simulate(
     """
     if on_guard not in ("raise", "stop"):
         raise ValueError("on_guard must be 'raise' or 'stop'")
-    traced = _is_traced(x0, t0, t1, system, control)
+    # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
+    traced = _is_traced(x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
     if not traced and not float(t1) > float(t0):
         raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
     x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
