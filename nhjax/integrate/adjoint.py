@@ -129,7 +129,7 @@ class _Problem(eqx.Module):
         sol = diffrax.diffeqsolve(
             self.term, self.solver, self.t0, self.t1, self.dt0, y0, args=args,
             saveat=diffrax.SaveAt(subs=subs), stepsize_controller=self.controller,
-            adjoint=adjoint or (diffrax.ForwardMode() if record else diffrax.RecursiveCheckpointAdjoint()), event=self.event,
+            adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(), event=self.event,
             max_steps=self.max_steps, throw=False, progress_meter=self.progress_meter,
         )
         out = dict(
@@ -246,9 +246,38 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
     # time: they depend only on the recorded states, so each chunk is one vectorised
     # evaluation (on the CPU a per-step Jacobian or VJP would pay XLA's per-kernel
     # overhead ~100 times per step); then the recursion lam_k = J_k^T lam_{k+1} + A_k.
-    def step_jacobians(yf, tk, tk1, jac=None):
-        jac = jac or (jax.jacfwd if forward else jax.jacrev)
+    def step_jacobians(yf, tk, tk1, jac):
         return jac(lambda yy, pf: step(yy, pf, tk, tk1)[0], argnums=(0, 1))(yf, p_flat)
+
+    def chunked_jacobians(lam, ct_p, jac):
+        """lam_k = J_k^T lam_{k+1} + A_k with the step Jacobians of C steps built per vectorised
+        call (padding steps past M get J = I, dPhi/dp = 0), chunks from the last to the first."""
+        eye = jnp.eye(n)
+
+        def chunk_body(carry):
+            c, lam, ct_p = carry
+            start = c * C
+            ks = start + jnp.arange(C)
+            ok = ks < M
+            yk = jnp.where(ok[:, None], y_at(ks), y_flat0)
+            tk = jnp.where(ok, t_at(ks), t0)
+            tk1 = jnp.where(ok, t_at(ks + 1), t0)
+            Jy, Jp = jax.vmap(lambda y, a, b: step_jacobians(y, a, b, jac))(yk, tk, tk1)
+            Jy = jnp.where(ok[:, None, None], Jy, eye)
+            Jp = jnp.where(ok[:, None, None], Jp, 0.0)
+            extra = (jnp.zeros((C, n)) if A_k is None else
+                     jax.ops.segment_sum(A_v, A_k - start, num_segments=C))
+
+            def back(lam_next, inp):
+                J, e = inp
+                return J.T @ lam_next + e, lam_next
+
+            lam, lam_next = jax.lax.scan(back, lam, (Jy, extra), reverse=True, unroll=8)
+            return c - 1, lam, ct_p + jnp.einsum("knp,kn->p", Jp, lam_next)
+
+        n_chunks = (M + C - 1) // C
+        _, lam, ct_p = jax.lax.while_loop(lambda c: c[0] >= 0, chunk_body, (n_chunks - 1, lam, ct_p))
+        return lam, ct_p
 
     mode = adjoint.jacobians
     if mode == "auto":
@@ -258,40 +287,10 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
                 jax.eval_shape(lambda: step_jacobians(y_flat0, t0, t0, jax.jacfwd))
             except NotImplementedError:
                 mode = "vjp"
-    forward = mode == "forward"
-
     if mode == "vjp":
         lam, ct_p = _sequential_vjps(step, y_at, t_at, M, lam, ct_p, p_flat, A_k, A_v)
-        if g_ys is not None and ends_only:
-            a, b = fn_vjp(t0, y_flat0, jtu.tree_map(lambda g: g[0], g_ys))
-            lam, ct_p = lam + a, ct_p + b
-        return unravel_y(lam), unravel_p(ct_p)
-
-    eye = jnp.eye(n)
-
-    def chunk_body(carry):
-        c, lam, ct_p = carry
-        start = c * C
-        ks = start + jnp.arange(C)
-        ok = ks < M
-        yk = jnp.where(ok[:, None], y_at(ks), y_flat0)
-        tk = jnp.where(ok, t_at(ks), t0)
-        tk1 = jnp.where(ok, t_at(ks + 1), t0)
-        Jy, Jp = jax.vmap(step_jacobians)(yk, tk, tk1)
-        Jy = jnp.where(ok[:, None, None], Jy, eye)
-        Jp = jnp.where(ok[:, None, None], Jp, 0.0)
-        extra = (jnp.zeros((C, n)) if A_k is None else
-                 jax.ops.segment_sum(A_v, A_k - start, num_segments=C))
-
-        def back(lam_next, inp):
-            J, e = inp
-            return J.T @ lam_next + e, lam_next
-
-        lam, lam_next = jax.lax.scan(back, lam, (Jy, extra), reverse=True, unroll=8)
-        return c - 1, lam, ct_p + jnp.einsum("knp,kn->p", Jp, lam_next)
-
-    n_chunks = (M + C - 1) // C
-    _, lam, ct_p = jax.lax.while_loop(lambda c: c[0] >= 0, chunk_body, (n_chunks - 1, lam, ct_p))
+    else:
+        lam, ct_p = chunked_jacobians(lam, ct_p, jax.jacfwd if mode == "forward" else jax.jacrev)
     if g_ys is not None and ends_only:
         a, b = fn_vjp(t0, y_flat0, jtu.tree_map(lambda g: g[0], g_ys))
         lam, ct_p = lam + a, ct_p + b

@@ -39,7 +39,7 @@ from ..errors import (
 )
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
-from .adjoint import DiscreteAdjoint, _Problem, discrete_solve
+from .adjoint import DiscreteAdjoint, _Problem, _save_state, discrete_solve
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
 
@@ -127,10 +127,6 @@ def _all_euclidean(spaces) -> bool:
 def _max_abs(a):
     a = jnp.asarray(a)
     return jnp.max(jnp.abs(a)) if a.size else jnp.zeros(())
-
-
-def _save_state(t, y, args):
-    return y
 
 
 def _vector_field(static: _Static):
