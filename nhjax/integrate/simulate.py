@@ -195,8 +195,9 @@ def _warm_pool():
     return _WARM_POOL
 
 
-@eqx.filter_jit
-def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static):
+def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static: _Static):
+    """The diffrax problem of one solve: term, solver (projected if asked), controller,
+    guard event, what to save. Returns (problem, y0); y0 carries the work if tracked."""
     track = static.track_work
     spaces = system.spaces
     y0 = (x0, jnp.zeros((), x0.dtype if hasattr(x0, "dtype") else float)) if track else x0
@@ -238,10 +239,12 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
     problem = _Problem(term=term, solver=solver, controller=controller, event=event, sub=sub,
                        progress_meter=progress_meter, t0=t0, t1=t1, dt0=dt0,
                        max_steps=static.max_steps)
-    if isinstance(adjoint, DiscreteAdjoint):
-        sol = discrete_solve((y0, (system, control)), problem, adjoint)
-    else:
-        sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
+    return problem, y0
+
+
+def _finish(system, control, x0, t0, sol, static: _Static):
+    """The Trajectory of one solve from its raw output ``sol`` (``_Problem.run``'s dict)."""
+    track = static.track_work
     ts_saved, ys, t_final = sol["ts"], sol["ys"], sol["t_final"]
     x_end = sol["y_end"][0] if track else sol["y_end"]
     if track:
@@ -270,6 +273,16 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         event_mask=sol["event_mask"],
         state_names=static.state_names,
     )
+
+
+@eqx.filter_jit
+def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static):
+    problem, y0 = _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static)
+    if isinstance(adjoint, DiscreteAdjoint):
+        sol = discrete_solve((y0, (system, control)), problem, adjoint)
+    else:
+        sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
+    return _finish(system, control, x0, t0, sol, static)
 
 
 def _save_times(saveat, t0, t1):
