@@ -2,11 +2,14 @@
 that need very different numbers of steps; batched parameters and controls;
 bad members named."""
 
+import diffrax
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import nhjax
+from nhjax.mechanics import Lagrangian
 from nhjax.scenes import FallingCat
 
 CTRL = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])
@@ -92,3 +95,93 @@ def test_split_batch_on_two_workers_equals_one_chunk():
         np.testing.assert_allclose(split.xs[i], one.xs, rtol=1e-12, atol=1e-12)
     with pytest.raises(nhjax.BatchError, match="member 457: x0 contains NaN"):
         nhjax.simulate_batch(cat, X.at[457, 2].set(jnp.nan), 3.0, workers=2, **kw)
+
+
+def test_lockstep_equals_vmapped_diffrax_and_saves_up_to_a_guard():
+    """Two independent batch paths agree member by member: the lock-step integrator and
+    vmapped diffeqsolve (taken when an adjoint is given), with uneven save times and a
+    member stopped by the chart guard (nothing saved after its event time)."""
+    cat = FallingCat()
+    X = jnp.stack([cat.initial_state(0.8, chi_dot=0.5), cat.initial_state(0.3, theta_dot=-1.0),
+                   cat.initial_state(1.0, chi_dot=4.0)])
+    ts = jnp.array([0.0, 0.05, 0.3, 0.31, 1.2, 2.0])
+    kw = dict(rtol=1e-9, atol=1e-9, saveat=ts, on_guard="stop")
+    lock = nhjax.simulate_batch(cat, X, 2.0, **kw)
+    vm = nhjax.simulate_batch(cat, X, 2.0, adjoint=diffrax.RecursiveCheckpointAdjoint(), **kw)
+    np.testing.assert_array_equal(lock.num_accepted_steps, vm.num_accepted_steps)
+    np.testing.assert_allclose(lock.t_final, vm.t_final, rtol=1e-12)
+    assert 0.25 < float(lock.t_final[1]) < 0.31  # member 1 reaches the guard
+    np.testing.assert_array_equal(np.isfinite(lock.ts), np.isfinite(vm.ts))
+    assert not np.isfinite(lock.ts[1, 3:]).any() and np.isfinite(lock.ts[0]).all()
+    ok = np.isfinite(np.asarray(vm.xs))
+    np.testing.assert_allclose(np.asarray(lock.xs)[ok], np.asarray(vm.xs)[ok], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(lock.x_end, vm.x_end, rtol=1e-11, atol=1e-12)
+
+
+def test_group_valued_states_projection_jumps_and_other_solvers():
+    """Per member the single result, where the lock-step path does something different:
+    group-valued state parts (vmapped exp maps), a projection after every step, a
+    piecewise-constant control (jump times restart the FSAL stage of some members),
+    and a diffrax solver stepped member by member."""
+    att = FallingCat().attitude_model()  # SO(3) x SO(3) x R^4
+    X = nhjax.stack([att.initial_state(0.8, chi_dot=c) for c in (0.5, 1.5)])
+    tr = nhjax.simulate_batch(att, X, 3.0, control=CTRL, saveat=4)
+    for i, c in enumerate((0.5, 1.5)):
+        one = nhjax.simulate(att, att.initial_state(0.8, chi_dot=c), 3.0, control=CTRL, saveat=4)
+        for a, b in zip(jax.tree_util.tree_leaves(tr.xs), jax.tree_util.tree_leaves(one.xs)):
+            np.testing.assert_allclose(a[i], b, rtol=1e-12, atol=1e-12)
+
+    pend = Lagrangian(2, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 9.81 * q[1],
+                      position_constraints=lambda t, q: jnp.atleast_1d(q @ q - 1.0))
+    X = jnp.array([[np.sin(a), -np.cos(a), w * np.cos(a), w * np.sin(a)] for a, w in ((0.4, 1.5), (1.0, -2.0))])
+    tr = nhjax.simulate_batch(pend, X, 3.0, project_steps=True, saveat=5)
+    for i in range(2):
+        one = nhjax.simulate(pend, X[i], 3.0, project_steps=True, saveat=5)
+        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+        assert float(tr.constraint_drift["position"][i]) < 1e-12
+
+    cat = FallingCat()
+    steps = nhjax.PiecewiseConstant(jnp.array([0.0, 0.7, 1.9, 3.0]), jnp.array([[0.02, 0.0], [-0.01, 0.01], [0.0, 0.0]]))
+    X = jnp.stack([cat.initial_state(0.8, chi_dot=c) for c in (0.5, 2.5)])
+    tr = nhjax.simulate_batch(cat, X, 3.0, control=steps, rtol=1e-9, atol=1e-9)
+    for i in range(2):
+        one = nhjax.simulate(cat, X[i], 3.0, control=steps, rtol=1e-9, atol=1e-9, saveat=2)
+        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+        assert int(tr.num_accepted_steps[i]) == int(one.num_accepted_steps)
+    # Dopri8 with jump times: diffrax itself takes other steps under vmap than alone
+    # (jax.vmap of simulate: 6 and 10 steps, one by one: 10 and 14), so the lock-step
+    # result is compared with vmapped diffrax exactly and with simulate() to the tolerance
+    kw = dict(control=steps, solver=diffrax.Dopri8(), rtol=1e-9, atol=1e-9)
+    tr = nhjax.simulate_batch(cat, X, 3.0, **kw)
+    vm = nhjax.simulate_batch(cat, X, 3.0, adjoint=diffrax.RecursiveCheckpointAdjoint(), **kw)
+    np.testing.assert_allclose(tr.xs, vm.xs, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(tr.num_steps, vm.num_steps)
+    for i in range(2):
+        np.testing.assert_allclose(tr.xs[i], nhjax.simulate(cat, X[i], 3.0, saveat=2, **kw).xs, rtol=1e-8, atol=1e-9)
+
+
+def test_angles_beyond_the_fast_sine_range_rerun_with_the_library_sine():
+    """A control phase of 1e7 rad puts sin/cos arguments beyond fast_trig.LIMIT: the
+    chunk reports it and is solved again with libm's functions, matching simulate()."""
+    from nhjax.integrate import batch
+
+    cat = FallingCat()
+    X = jnp.stack([cat.initial_state(0.8, chi_dot=0.5), cat.initial_state(0.9, chi_dot=1.0)])
+    t0, t1 = jnp.asarray(0.0), jnp.asarray(4.0)
+    for phase, expect_bad in ((0.3, False), (1.0e7, True)):
+        ctrl = nhjax.Sinusoids([0.0, 0.0], [0.04, 0.02], [1.7, 0.9], [phase, phase])
+        options = dict(saveat=2, solver=None, rtol=1e-9, atol=1e-9, dt0=None, max_steps=None,
+                       stepsize_controller=None, jump_ts=None, adjoint=None, project_steps=False,
+                       track_work=False, progress=False, diagnostics=False)
+        _, bad = batch._lockstep_chunk(cat, X, ctrl, t0, t1, options, ("sin_theta",), (None, 0, None), True)
+        assert bool(bad) == expect_bad
+        tr = nhjax.simulate_batch(cat, X, 4.0, control=ctrl, rtol=1e-9, atol=1e-9)
+        vm = nhjax.simulate_batch(cat, X, 4.0, control=ctrl, rtol=1e-9, atol=1e-9,
+                                  adjoint=diffrax.RecursiveCheckpointAdjoint())
+        np.testing.assert_allclose(tr.xs, vm.xs, rtol=1e-12, atol=1e-12)
+        # against simulate(): sin(w t + 1e7) itself is only defined to ulp(1e7) = 2e-9
+        # (the compiled batch and single programs round w t + phase differently)
+        tol = 1e-12 if phase < 1 else 5e-9
+        for i in range(2):
+            one = nhjax.simulate(cat, X[i], 4.0, control=ctrl, rtol=1e-9, atol=1e-9, saveat=2)
+            np.testing.assert_allclose(tr.xs[i], one.xs, rtol=tol, atol=tol)
