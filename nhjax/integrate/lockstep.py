@@ -248,7 +248,7 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
                 vals = vm(value, c["tprev"], c["tnext"], dense, t_s)
                 row = jnp.where(pend, idx, n_ts)  # out of range: dropped
                 ys = jtu.tree_map(
-                    lambda buf, v: buf.at[row, ..., lane].set(jnp.moveaxis(v, -1, 0), mode="drop"),
+                    lambda buf, v: buf.at[row, ..., lane].set(jnp.moveaxis(v, -1, 0), mode="drop", unique_indices=True),
                     ys, vals)
                 return idx + pend, ys
 

@@ -103,7 +103,14 @@ class LieInterpolation(AbstractLocalInterpolation):
         if t1 is not None:
             return jtu.tree_map(lambda a, b: b - a, self.evaluate(t0), self.evaluate(t1))
         s = (t0 - self.t0) / (self.t1 - self.t0)
-        sigma = jtu.tree_map(lambda c: jnp.tensordot(s ** jnp.arange(c.shape[0] - 1, -1, -1), c, axes=1), self.coeffs)
+
+        def horner(c):  # c[0] s^(k-1) + ... + c[k-1], elementwise (vectorizes in batches)
+            out = c[0]
+            for j in range(1, c.shape[0]):
+                out = out * s + c[j]
+            return out
+
+        sigma = jtu.tree_map(horner, self.coeffs)
         return _map(lambda sp, y, sg: sp.retract(y, sg), self.spaces, self.y0, sigma)
 
 
