@@ -185,3 +185,17 @@ def test_angles_beyond_the_fast_sine_range_rerun_with_the_library_sine():
         for i in range(2):
             one = nhjax.simulate(cat, X[i], 4.0, control=ctrl, rtol=1e-9, atol=1e-9, saveat=2)
             np.testing.assert_allclose(tr.xs[i], one.xs, rtol=tol, atol=tol)
+
+
+def test_compiled_chunks_are_reused_only_for_the_same_configuration():
+    """simulate_batch keeps compiled chunk programs by argument structure: a second call
+    with other tolerances or another control must not reuse the first program."""
+    cat = FallingCat()
+    X = jnp.stack([cat.initial_state(0.8, chi_dot=0.5), cat.initial_state(0.9, chi_dot=1.5)])
+    other = nhjax.Sinusoids([0.0, 0.0], [0.05, 0.0], [1.0, 1.0])
+    for rtol, ctrl in ((1e-6, CTRL), (1e-10, CTRL), (1e-6, CTRL), (1e-6, other)):
+        tr = nhjax.simulate_batch(cat, X, 3.0, control=ctrl, rtol=rtol, atol=rtol)
+        for i in range(2):
+            one = nhjax.simulate(cat, X[i], 3.0, control=ctrl, rtol=rtol, atol=rtol, saveat=2)
+            assert int(tr.num_accepted_steps[i]) == int(one.num_accepted_steps)
+            np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
