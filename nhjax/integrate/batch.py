@@ -13,16 +13,16 @@ the batch axis last so that the stage arithmetic vectorizes, and float64
 sin/cos evaluated by vectorizable polynomials (``fast_trig.py``; a chunk whose
 arguments leave their exact range, |x| > 8.2e5, is solved again with the C
 library's). When an ``adjoint`` is given the chunk is vmapped
-``diffrax.diffeqsolve`` instead (differentiable; about 2x slower).
+``diffrax.diffeqsolve`` instead (differentiable; 2-2.5x slower).
 Chunks are dispatched to every local CPU device, or, with a single device, to
 ``workers`` threads that run compiled chunks concurrently (XLA releases the
 GIL), so both cores of a laptop work. Memory stays bounded: a chunk holds only
 its working state, and only the requested saved times are kept.
 
 Measured (``benchmarks/batch_throughput.py``, falling cat, rtol 1e-8, 2 cores):
-1024 members 85.5k trajectories/s, 16384: 108k, against 52k and 49k for a
-numba-compiled Dormand-Prince in a parallel loop in the same run (vmapped
-diffrax: 33-39k at 1024).
+1024 members 85.5k and 92.8k trajectories/s in two runs, 16384: 108k and 109k,
+against 52k/76k and 49k/68k for a numba-compiled Dormand-Prince in a parallel
+loop in the same runs (vmapped diffrax: 33-39k at 1024).
 
 Errors name the members: bad initial states (NaN, constraint violation, outside
 a chart, ill-posed) and failed solves (max_steps, NaN, chart guard) raise
