@@ -151,10 +151,22 @@ def _lockstep_chunk(system, x0, control, t0, t1, options, guard_names, axes, fas
     return traj, bad
 
 
-#: XLA options for the lock-step chunks: 512-bit vectors where the CPU has them (AVX-512;
-#: ignored elsewhere). Measured on the falling cat, 1024 members, one thread, 15 runs
-#: interleaved: 18.0 -> 15.1 ms (4096 members: 56.1 -> 50.9 ms).
-_COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512}
+#: XLA options for the lock-step chunks (profiled per kernel with jax.profiler, cat,
+#: 1024 members, one thread): 512-bit vectors where the CPU has them (AVX-512; ignored
+#: elsewhere): 18.0 -> 15.1 ms; and no YNNPACK fusions: XLA turned each member's error
+#: norm into a YNNPACK dot that took 10-25 % of the loop (4096 members: 50 -> 38 ms).
+#: An XLA that does not know an option compiles without it.
+_COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+def _compile(lowered, options):
+    try:
+        return lowered.compile(compiler_options=options)
+    except Exception:  # an option this XLA does not have
+        if not options:
+            raise
+        return _compile(lowered, dict(list(options.items())[:-1]))
+
 
 #: Fewest members per chunk for which splitting a batch across workers pays (measured on
 #: the falling cat, rtol 1e-8, 2 cores, idle: B = 1024 as one chunk 14.5k traj/s, as
@@ -368,7 +380,7 @@ def simulate_batch(
         key = _compile_key(chunk_fn, all_args)
         solve = _COMPILED.get(key) if key is not None else None
         if solve is None:
-            solve = chunk_fn.lower(*all_args).compile(compiler_options=_COMPILER_OPTIONS if lockstep else None)
+            solve = _compile(chunk_fn.lower(*all_args), _COMPILER_OPTIONS if lockstep else {})
             if key is not None:
                 if len(_COMPILED) >= 32:  # keep the 32 newest programs
                     _COMPILED.pop(next(iter(_COMPILED)))
