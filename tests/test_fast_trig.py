@@ -46,21 +46,22 @@ def test_rewrite_replaces_nested_calls_and_flags_large_arguments():
     def inner(x):
         return jnp.sin(x) * jnp.cos(2 * x)
 
-    def f(x, y):
+    def f(x, y, w):
         z = inner(x) + jax.nn.softplus(jnp.sin(y))  # custom_jvp inside
-        looped = jax.lax.fori_loop(0, 3, lambda i, a: a + jnp.sin(a), y)  # left to libm
-        return z, looped
+        scanned = jax.lax.scan(lambda c, a: (c + jnp.cos(a * c), jnp.sin(c)), w, x[:8])  # replaced
+        looped = jax.lax.while_loop(lambda a: a[0] < 3, lambda a: (a[0] + 1, a[1] + jnp.sin(a[1])), (0, y))[1]
+        return z, scanned, looped  # the while loop's sin is left to libm
 
-    x, y = jnp.linspace(-3.0, 3.0, 64), jnp.linspace(0.1, 2.0, 64)
-    g = jax.jit(with_fast := ft.with_fast_trig(f, x, y))
-    (z, looped), bad = g(x, y)
-    z0, looped0 = f(x, y)
-    np.testing.assert_allclose(z, z0, rtol=1e-15, atol=1e-15)
-    np.testing.assert_array_equal(looped, looped0)
+    x, y, w = jnp.linspace(-3.0, 3.0, 64), jnp.linspace(0.1, 2.0, 64), jnp.linspace(-1.0, 1.0, 64)
+    g = jax.jit(with_fast := ft.with_fast_trig(f, x, y, w))
+    out, bad = g(x, y, w)
+    for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(f(x, y, w))):
+        np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14)
     assert not bool(bad)
-    jaxpr = str(jax.make_jaxpr(with_fast)(x, y))
-    assert jaxpr.count(" sin ") == 1  # only the one inside the loop body is left
+    jaxpr = str(jax.make_jaxpr(with_fast)(x, y, w))
+    assert jaxpr.count(" sin ") == 1  # only the one inside the while loop is left
     assert " cos " not in jaxpr
     for big in (ft.LIMIT * 1.01, np.inf, -1e9):
-        assert bool(g(x.at[5].set(big), y)[1])
-    assert not bool(g(x.at[5].set(np.nan), y)[1])  # NaN stays NaN, no re-run needed
+        assert bool(g(x.at[5].set(big), y, w)[1])
+    assert bool(g(x, y, w.at[3].set(1e9))[1])  # beyond the range inside the scan body only
+    assert not bool(g(x.at[5].set(np.nan), y, w)[1])  # NaN stays NaN, no re-run needed

@@ -124,6 +124,8 @@ def _eval(jaxpr, consts, args, acc):
             acc = dict(acc)
             acc[shape] = jnp.maximum(acc[shape], size) if shape in acc else size
             outs = [_REPLACE[prim](x)]
+        elif prim.name == "scan":
+            outs, acc = _eval_scan(eqn, invals, acc)
         elif key is not None and key in eqn.params:
             inner = eqn.params[key]
             if isinstance(inner, jex.ClosedJaxpr):
@@ -141,12 +143,47 @@ def _eval(jaxpr, consts, args, acc):
     return [read(v) for v in jaxpr.outvars], acc
 
 
+def _merge(acc, new):
+    acc = dict(acc)
+    for shape, m in new.items():
+        acc[shape] = jnp.maximum(acc[shape], m) if shape in acc else m
+    return acc
+
+
+def _eval_scan(eqn, invals, acc):
+    """A lax.scan whose body has sin/cos replaced; the running maxima of their
+    arguments travel through the loop as extra carries (an RKMK stage scan holds the
+    vector field of large systems)."""
+    p = eqn.params
+    body, nc, ncarry = p["jaxpr"], p["num_consts"], p["num_carry"]
+    consts, init, xs = invals[:nc], invals[nc:nc + ncarry], invals[nc + ncarry:]
+
+    def run(carry, x, acc_in):
+        outs, acc_new = _eval(body.jaxpr, body.consts, [*consts, *carry, *(x or ())], {})
+        return outs[:ncarry], outs[ncarry:], _merge(acc_in, acc_new) if acc_in else acc_new
+
+    x_struct = [jax.ShapeDtypeStruct(a.shape[1:], a.dtype) for a in xs]
+    c_struct = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in init]
+    acc_shapes = jax.eval_shape(lambda c, x: run(c, x, {})[2], c_struct, x_struct)
+    acc0 = {k: jnp.zeros(v.shape, v.dtype) for k, v in acc_shapes.items()}
+
+    def f(carry_acc, x):
+        carry, acc_in = carry_acc
+        c, y, acc_out = run(carry, x, acc_in)
+        return (c, acc_out), y
+
+    (carry, acc_scan), ys = jax.lax.scan(f, (list(init), acc0), list(xs) if xs else None,
+                                         length=p["length"], reverse=p["reverse"], unroll=p["unroll"])
+    return [*carry, *ys], _merge(acc, acc_scan)
+
+
 def with_fast_trig(fn, *example_args):
-    """``fn`` with every float64 sin/cos outside loops and conditionals replaced by the
-    vectorizable versions above. Returns ``g`` with ``g(*args) == (fn(*args), bad)``;
+    """``fn`` with every float64 sin/cos outside while loops and conditionals replaced by the
+    vectorizable versions above (also inside lax.scan bodies). Returns ``g`` with
+    ``g(*args) == (fn(*args), bad)``;
     ``bad`` is True when some replaced call had an argument beyond ``LIMIT`` or infinite
-    (then the outputs are inaccurate: run ``fn`` instead). sin/cos inside lax loops and
-    conditionals are left alone. Forward use only (derivatives are not defined)."""
+    (then the outputs are inaccurate: run ``fn`` instead). sin/cos inside while loops
+    and conditionals are left alone. Forward use only (derivatives are not defined)."""
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(*example_args)
     out_tree = jtu.tree_structure(out_shape)
 
