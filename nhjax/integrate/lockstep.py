@@ -31,8 +31,9 @@ event's root find. So each member takes exactly the steps a single
 (``tests/test_batch.py`` compares them member by member).
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
-(the loop has no reverse-mode rule). Vector fields evaluated inside a lax loop
-(``large_vector_field`` systems run their stages as a scan) keep libm's sin/cos.
+(the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
+keep libm's functions (inside a scan, such as the RKMK stage scan of
+``large_vector_field`` systems, they are replaced too).
 """
 
 from __future__ import annotations
