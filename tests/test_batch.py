@@ -199,3 +199,30 @@ def test_compiled_chunks_are_reused_only_for_the_same_configuration():
             one = nhjax.simulate(cat, X[i], 3.0, control=ctrl, rtol=rtol, atol=rtol, saveat=2)
             assert int(tr.num_accepted_steps[i]) == int(one.num_accepted_steps)
             np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+
+
+def test_several_local_devices(tmp_path):
+    """With two CPU devices (a fresh process with XLA's host device count set) the chunks
+    run on both and the result is gathered in member order (this used to fail when the
+    chunks were concatenated across devices)."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "two_devices.py"
+    script.write_text(
+        "import jax, jax.numpy as jnp, numpy as np, nhjax\n"
+        "from nhjax.scenes import FallingCat\n"
+        "assert len(jax.local_devices()) == 2\n"
+        "cat = FallingCat()\n"
+        "X = jnp.tile(cat.initial_state(0.8, chi_dot=0.5), (600, 1))\n"
+        "X = X.at[:, 0].add(np.linspace(-0.3, 0.3, 600))\n"
+        "tr = nhjax.simulate_batch(cat, X, 2.0, rtol=1e-9, atol=1e-9, saveat=3, diagnostics=False)\n"
+        "for i in (0, 299, 300, 599):\n"
+        "    one = nhjax.simulate(cat, X[i], 2.0, rtol=1e-9, atol=1e-9, saveat=3, diagnostics=False)\n"
+        "    np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)\n"
+        "print('ok')\n"
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]

@@ -392,6 +392,8 @@ def simulate_batch(
         if bool(bad):  # some sin/cos argument beyond fast_trig.LIMIT: exact library functions
             out, _ = call(chunk_fn, s, x, c, False)
         out = jax.block_until_ready(out)
+        if len(devices) > 1:  # gather on the first device (concatenated below)
+            out = jax.device_put(out, devices[0])
         with lock:
             results[i] = out
         return i
