@@ -132,15 +132,13 @@ def _solve_chunk(system, x0, control, t0, t1, options, guard_names, axes):
 def _lockstep_chunk(system, x0, control, t0, t1, options, guard_names, axes, fast_trig):
     """One chunk by the lock-step integrator (lockstep.py): the same steps per member as
     _solve_chunk, batch axis last inside. Returns (trajectories, trig_out_of_range)."""
-    ex = [a if ax is None else jtu.tree_map(lambda v: v[0] if jnp.ndim(v) else v, a)
-          for a, ax in zip((system, x0, control), axes)]
-    static = _configure(ex[0], ex[2], ex[1], t0, t1, guard_names, **options)[4]
-
     def build(s, x, c):
         solver, controller, _, dt0, st, ts = _configure(s, c, x, t0, t1, guard_names, **options)
-        return _build_problem(s, c, x, t0, t1, ts, solver, controller, dt0, st)
+        return _build_problem(s, c, x, t0, t1, ts, solver, controller, dt0, st) + (st,)
 
-    problem, y0 = vmap_lanes(build, tuple(None if ax is None else 0 for ax in axes))(system, x0, control)
+    # static (a dataclass, not an array) passes through vmap_lanes unbatched
+    problem, y0, static = vmap_lanes(build, tuple(None if ax is None else 0 for ax in axes))(
+        system, x0, control)
     args = (system if axes[0] is None else _lanes_last(system),
             control if axes[2] is None else _lanes_last(control))
     args_axes = (None if axes[0] is None else -1, None if axes[2] is None else -1)

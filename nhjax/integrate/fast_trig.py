@@ -96,6 +96,14 @@ _INLINE = {"jit": "jaxpr", "pjit": "jaxpr", "closed_call": "call_jaxpr", "core_c
            "checkpoint": "jaxpr"}
 
 
+def _merge(acc, new):
+    """Running maxima of |sin/cos arguments| by argument shape: acc and new combined."""
+    acc = dict(acc)
+    for shape, m in new.items():
+        acc[shape] = jnp.maximum(acc[shape], m) if shape in acc else m
+    return acc
+
+
 def _eval(jaxpr, consts, args, acc):
     """Evaluate ``jaxpr`` with sin/cos replaced; ``acc`` maps an argument shape to the
     running elementwise max of |argument| (NaN counted as 0): an elementwise update that
@@ -119,10 +127,7 @@ def _eval(jaxpr, consts, args, acc):
         key = _INLINE.get(prim.name)
         if prim in _REPLACE and eqn.outvars[0].aval.dtype == jnp.float64:
             x = invals[0]
-            size = jnp.where(jnp.isnan(x), 0.0, jnp.abs(x))
-            shape = jnp.shape(x)
-            acc = dict(acc)
-            acc[shape] = jnp.maximum(acc[shape], size) if shape in acc else size
+            acc = _merge(acc, {jnp.shape(x): jnp.where(jnp.isnan(x), 0.0, jnp.abs(x))})
             outs = [_REPLACE[prim](x)]
         elif prim.name == "scan":
             outs, acc = _eval_scan(eqn, invals, acc)
@@ -143,13 +148,6 @@ def _eval(jaxpr, consts, args, acc):
     return [read(v) for v in jaxpr.outvars], acc
 
 
-def _merge(acc, new):
-    acc = dict(acc)
-    for shape, m in new.items():
-        acc[shape] = jnp.maximum(acc[shape], m) if shape in acc else m
-    return acc
-
-
 def _eval_scan(eqn, invals, acc):
     """A lax.scan whose body has sin/cos replaced; the running maxima of their
     arguments travel through the loop as extra carries (an RKMK stage scan holds the
@@ -160,7 +158,7 @@ def _eval_scan(eqn, invals, acc):
 
     def run(carry, x, acc_in):
         outs, acc_new = _eval(body.jaxpr, body.consts, [*consts, *carry, *(x or ())], {})
-        return outs[:ncarry], outs[ncarry:], _merge(acc_in, acc_new) if acc_in else acc_new
+        return outs[:ncarry], outs[ncarry:], _merge(acc_in, acc_new)
 
     x_struct = [jax.ShapeDtypeStruct(a.shape[1:], a.dtype) for a in xs]
     c_struct = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in init]

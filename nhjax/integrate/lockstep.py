@@ -160,7 +160,7 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
             d = dict(d, spaces=term.spaces)
         return solver.interpolation_cls(t0=t0_, t1=t1_, **d)
 
-    dense_static = []
+    dense_static = []  # the dense output's non-array part, recorded by take_step's first trace
 
     # -- initial state (diffeqsolve's initialisation, per member) --
     def init(pr, a, y):
@@ -201,7 +201,6 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
         sres = jnp.broadcast_to(sres._value, tprev.shape)
         return y1, y_err, dense_arr, s1, sres
 
-    eqx.filter_eval_shape(take_step, y0, carry["tprev"], tnext, sstate, carry["made_jump"])
     if event is not None:
         carry["ev_value"] = ev0
         carry["ev_mask"] = jnp.zeros(B, bool)
@@ -242,15 +241,17 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
         new["num_rejected"] = c["num_rejected"] + ~keep
 
         if not ends_only:  # every save time passed by an accepted step, by dense output
+            def save_time(idx):  # each member's next save time
+                return jnp.take_along_axis(problem.sub.ts, jnp.minimum(idx, n_ts - 1)[None], 0)[0]
+
             def pending(sc):
                 idx = sc[0]
-                t_next = jnp.take_along_axis(problem.sub.ts, jnp.minimum(idx, n_ts - 1)[None], 0)[0]
-                return active & keep & (idx < n_ts) & (t_next <= c["tnext"])
+                return active & keep & (idx < n_ts) & (save_time(idx) <= c["tnext"])
 
             def save_one(sc):
                 idx, ys = sc
                 pend = pending(sc)
-                t_s = jnp.take_along_axis(problem.sub.ts, jnp.minimum(idx, n_ts - 1)[None], 0)[0]
+                t_s = save_time(idx)
 
                 def value(pr, a, t0_, t1_, d, t):
                     return sub.fn(t, interpolation(t0_, t1_, d).evaluate(t), a)
@@ -340,14 +341,10 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
             ys = jtu.tree_map(
                 lambda a: jnp.where(late.reshape(late.shape[:1] + (1,) * (a.ndim - 2) + late.shape[1:]),
                                     jnp.inf, a), ys)
-    out = dict(
+    out = _lanes_first(dict(
         ts=ts, ys=ys, t_final=tfinal, y_end=yfinal,
         num_steps=c["num_steps"], num_accepted_steps=c["num_accepted"],
-        num_rejected_steps=c["num_rejected"],
-        result=eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, result),
-        event_mask=event_mask,
-    )
-    res = out.pop("result")
-    out = _lanes_first(out)
-    out["result"] = eqx.tree_at(lambda r: r._value, res, jnp.moveaxis(res._value, -1, 0))
+        num_rejected_steps=c["num_rejected"], event_mask=event_mask,
+    ))
+    out["result"] = eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, result)  # [B]
     return out, bad

@@ -229,18 +229,14 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
-        if tab.fsal and self.jumps and jnp.ndim(made_jump):
-            # a lock-step batch (nhjax.integrate.lockstep): t0 and made_jump per member,
-            # batch axis last; recompute where some member jumped
+        if tab.fsal and self.jumps:
+            # made_jump is one flag, or one per member in a lock-step batch
+            # (nhjax.integrate.lockstep, batch axis last): recompute where a member jumped
             f0 = jax.lax.cond(
                 jnp.any(made_jump),
                 lambda: jtu.tree_map(lambda f, s: jnp.where(made_jump, f, s),
                                      terms.vf(t0, y0, args), solver_state),
                 lambda: solver_state,
-            )
-        elif tab.fsal and self.jumps:
-            f0 = jax.lax.cond(
-                made_jump, lambda: terms.vf(t0, y0, args), lambda: solver_state
             )
         elif tab.fsal:
             f0 = solver_state
