@@ -41,19 +41,12 @@ from nhjax.scenes import FallingCat
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "peers"))
+sys.path.insert(0, str(HERE))
 import falling_cat as peers  # noqa: E402
+from _timing import median_time  # noqa: E402
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
 TOL = 1e-8
-
-
-def median_time(fn, repeats=5, min_total=0.3):
-    ts, start = [], time.perf_counter()
-    while len(ts) < repeats or (time.perf_counter() - start < min_total and len(ts) < 200):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
 
 
 def case():

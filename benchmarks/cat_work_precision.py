@@ -35,20 +35,16 @@ from nhjax.scenes import FallingCat
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "peers"))
+sys.path.insert(0, str(HERE))
 import falling_cat as peers  # noqa: E402
+import _timing  # noqa: E402
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
 RTOLS = [10.0**-k for k in range(3, 13)]
 
 
-def median_time(fn, min_repeats=5, min_total=0.2, max_repeats=200):
-    ts = []
-    t_start = time.perf_counter()
-    while len(ts) < min_repeats or (time.perf_counter() - t_start < min_total and len(ts) < max_repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+def median_time(fn, min_total=0.2):
+    return _timing.median_time(fn, min_total=min_total)
 
 
 def first_call(fn):

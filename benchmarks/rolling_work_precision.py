@@ -89,7 +89,9 @@ from nhjax.scenes import (
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE / "peers"))
+sys.path.insert(0, str(HERE))
 import rolling as peers  # noqa: E402
+import _timing  # noqa: E402
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
 RTOLS = [10.0**-k for k in range(3, 13)]
@@ -100,14 +102,8 @@ E3 = jnp.array([0.0, 0.0, 1.0])
 
 
 # --------------------------------------------------------------------------- timing
-def median_time(fn, min_repeats=5, min_total=0.5, max_repeats=200):
-    ts = []
-    t_start = time.perf_counter()
-    while len(ts) < min_repeats or (time.perf_counter() - t_start < min_total and len(ts) < max_repeats):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+def median_time(fn, min_repeats=5):
+    return _timing.median_time(fn, repeats=min_repeats, min_total=0.5)
 
 
 def wall(fn):

@@ -22,7 +22,6 @@ import json
 import os
 import platform
 import sys
-import time
 from pathlib import Path
 
 import diffrax
@@ -36,6 +35,7 @@ from jax.flatten_util import ravel_pytree
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+from _timing import median_time  # noqa: E402
 from compile_times import CASES  # noqa: E402
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
@@ -48,13 +48,8 @@ def build(name):
     return ns["system"], ns["x0"], float(ns["t1"]), ns["control"]
 
 
-def timed(fn, repeats=3, min_total=0.2):
-    ts, start = [], time.perf_counter()
-    while len(ts) < repeats or (time.perf_counter() - start < min_total and len(ts) < 50):
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
+def timed(fn):
+    return median_time(fn, repeats=3, min_total=0.2, max_repeats=50)
 
 
 def scene_rows(name):
