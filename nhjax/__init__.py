@@ -5,11 +5,16 @@ constraints, rigid bodies on Lie groups), differentiate through the
 simulations, and hand them to the optimal-control package ``controls``.
 
 float64 is switched on here, once, for the whole process: every result nhjax
-reports assumes it.
+reports assumes it. So is XLA's compilation of small while loops as one function
+(``_xla_flags.py``: a single trajectory of a small system runs ~2x faster; import
+nhjax before the first JAX computation for it to apply).
 """
 
 import jax as _jax
 
+from . import _xla_flags
+
+_xla_flags.configure()
 _jax.config.update("jax_enable_x64", True)
 
 from . import lie, mechanics, scenes  # noqa: E402
