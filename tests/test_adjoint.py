@@ -65,7 +65,67 @@ def test_cat_gradient_equals_differentiated_loop_and_fd(saveat):
     np.testing.assert_allclose(got, np.asarray(fd), rtol=2e-5)
 
 
-@pytest.mark.slow  # default runs cover "forward" (the cat, the pendulum) and "vjp" (the robot)
+def test_tangents_mode_agrees_with_the_differentiated_loop():
+    """Forward sensitivities carried through the solve ("tangents"), here with all D = 9
+    inputs of the cat loss (amplitudes, lam, initial state; saved states and work)."""
+    p = _cat_params()
+    g_t = jax.jit(jax.grad(_cat_loss(nhjax.DiscreteAdjoint(jacobians="tangents"), 41)))(p)
+    g_rc = jax.jit(jax.grad(_cat_loss(RC, 41)))(p)
+    for a, b in zip(jax.tree_util.tree_leaves(g_t), jax.tree_util.tree_leaves(g_rc)):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(np.max(np.abs(b))))
+
+
+def test_auto_mode_follows_the_number_of_differentiated_inputs(monkeypatch):
+    """auto: tangents for D <= max_tangents differentiated numbers, per-step VJPs above."""
+    from nhjax.integrate import adjoint as A
+
+    used = []
+    monkeypatch.setattr(A, "_tangent_forward", lambda *a, f=A._tangent_forward: used.append("tangents") or f(*a))
+    monkeypatch.setattr(A, "_sequential_vjps", lambda *a, f=A._sequential_vjps: used.append("vjp") or f(*a))
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8, chi_dot=0.5)
+
+    def loss(amp, x0, adjoint):
+        ctrl = nhjax.Sinusoids(TORQUE.offset, amp, TORQUE.omega, TORQUE.phase)
+        tr = nhjax.simulate(cat, x0, 3.0, control=ctrl, rtol=1e-9, atol=1e-9, saveat=2,
+                            adjoint=adjoint, diagnostics=False, track_work=False)
+        return tr.x_end[2] ** 2
+
+    g_few = jax.grad(loss)(TORQUE.amplitude, x0, nhjax.DiscreteAdjoint())  # D = 2
+    g_many = jax.grad(loss, argnums=(0, 1))(TORQUE.amplitude, x0, nhjax.DiscreteAdjoint())  # D = 7
+    g_rc = jax.grad(loss, argnums=(0, 1))(TORQUE.amplitude, x0, RC)
+    assert used == ["tangents", "vjp"]
+    np.testing.assert_allclose(g_few, g_rc[0], rtol=1e-11)
+    np.testing.assert_allclose(g_many[0], g_rc[0], rtol=1e-11)
+    np.testing.assert_allclose(g_many[1], g_rc[1], rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(g_rc[1]))))
+
+
+def test_tangents_differentiate_a_guards_event_time():
+    """A solve stopped at the chart's edge (sin theta = eps): theta_dot(t*) + t* in the initial
+    tilt rate. "tangents" differentiates the event time t* (like the differentiated loop
+    and central differences); the recorded modes hold t* fixed (documented)."""
+    cat = FallingCat(chart_eps=1e-3)
+
+    def loss(w, adjoint):
+        x0 = cat.initial_state(0.3, theta_dot=w)
+        tr = nhjax.simulate(cat, x0, 2.0, on_guard="stop", rtol=1e-11, atol=1e-11, saveat=2,
+                            adjoint=adjoint, diagnostics=False)
+        return tr.x_end[3] + tr.t_final
+
+    w = jnp.asarray(-1.0)
+    g_t = jax.jit(jax.grad(lambda w: loss(w, nhjax.DiscreteAdjoint(jacobians="tangents"))))(w)
+    g_rc = jax.jit(jax.grad(lambda w: loss(w, RC)))(w)
+    f = jax.jit(lambda w: loss(w, None))
+    assert 0.2 < float(nhjax.simulate(cat, cat.initial_state(0.3, theta_dot=-1.0), 2.0,
+                                      on_guard="stop").t_final) < 0.4
+    h = 1e-5
+    fd = (f(w + h) - f(w - h)) / (2 * h)
+    np.testing.assert_allclose(g_t, g_rc, rtol=1e-8)
+    np.testing.assert_allclose(g_t, fd, rtol=1e-5)
+    assert abs(float(g_t)) > 0.01
+
+
+@pytest.mark.slow  # default runs cover "tangents", "vjp" (the cat, the robot) and auto's choice
 def test_three_ways_of_forming_the_step_products_agree():
     """Chunked forward-mode Jacobians, chunked reverse-mode Jacobians (chunks that do not
     divide the step count) and one VJP per step."""

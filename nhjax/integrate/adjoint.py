@@ -23,19 +23,32 @@ round-off is a test). A state saved between steps is the solver's dense output
 on step k, a function of (y_k, p): its VJP adds to lambda_k (all saved states
 at once, vectorised).
 
-How lambda_k is formed (``DiscreteAdjoint.jacobians``): for small systems the
-step Jacobians dPhi/dy_k and dPhi/dp are built by forward mode for a chunk of
-steps in one vectorised call (they depend only on the recorded states), then
-the recursion is a sequence of n x n matrix-vector products; for large systems
-one VJP per step. On the CPU, XLA runs a step's VJP as ~300 small kernels and
-pays ~100 ns for each, so on the falling cat (n = 5, P = 2) the chunked
-Jacobians give 8-9x a forward solve and per-step VJPs 23x, against 71-74x for
-RecursiveCheckpointAdjoint (benchmarks/batch_throughput.py, rtol 1e-10).
+How the backward pass is formed (``DiscreteAdjoint.jacobians``), for D
+differentiated input numbers:
 
-Cost and memory: the forward pass records every accepted step (``max_steps`` x
-state size floats per solve, only when differentiated: a forward-only call
-records nothing); on the cat the recording forward pass took 0.41-0.52 ms against
-0.115 ms for a plain one (diffrax writes each step with ~8 extra small kernels).
+* "tangents" (chosen for D <= 4): nothing is recorded; the forward solve carries
+  the D tangents dy/d(inputs) along with the state (forward sensitivities: the
+  JVP of the same steps, vectorised over the D directions), and the backward
+  pass is (output cotangent) . (output Jacobian). The product of the same step
+  Jacobians taken in the other order, so it is the same derivative; a guard's
+  event time is differentiated too (as by RecursiveCheckpointAdjoint).
+* "vjp" (chosen for D > 4): record the accepted steps, then one VJP of the step
+  per step from the last to the first; cost independent of D.
+* "forward" / "reverse": record, then build the step Jacobians dPhi/dy_k and
+  dPhi/dp for a chunk of steps in one vectorised call, and run the recursion as
+  n x n matrix-vector products.
+
+Measured on the falling cat (n = 5, 119 steps at rtol 1e-10; benchmarks/
+batch_throughput.py): a forward solve 0.05 ms; D = 2: tangents 2.3-2.5x it,
+per-step VJPs 6-9x, chunked forward Jacobians 12x; D = 7: tangents 7-8x, VJPs
+6-7x; RecursiveCheckpointAdjoint 50x or more. These figures assume XLA compiles
+small while loops as one function (nhjax/_xla_flags.py); kernel by kernel, a
+step's VJP was ~300 kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
+
+Cost and memory: except in "tangents" mode the forward pass records every
+accepted step (``max_steps`` x state size floats per solve, only when
+differentiated: a forward-only call records nothing); on the cat the recording
+forward pass takes 0.14-0.27 ms against 0.05 ms for a plain one.
 
 Limits (checked or documented):
 
@@ -43,7 +56,7 @@ Limits (checked or documented):
   ``jax.jvp``/``jax.jacfwd``;
 * the times t0, t1 and the save times are not differentiated;
 * a solve stopped by a chart guard (``on_guard="stop"``) ends at the event time
-  t*: this adjoint holds t* fixed (no dt*/dp term, which RecursiveCheckpointAdjoint
+  t*: except in "tangents" mode this adjoint holds t* fixed (no dt*/dp term, which RecursiveCheckpointAdjoint
   includes by differentiating the root find), and differentiates the last piece
   as a step from t_{M-1} to t* where the forward took the dense output, so the
   gradient belongs to a solution within one step's local error of the returned
@@ -63,6 +76,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax.flatten_util import ravel_pytree
 
 __all__ = ["DiscreteAdjoint"]
@@ -73,22 +87,28 @@ class DiscreteAdjoint(eqx.Module):
     Runge-Kutta steps (see the module docstring for the method and its limits).
 
     Pass as ``simulate(..., adjoint=nhjax.DiscreteAdjoint())``. The forward pass
-    of a differentiated solve stores up to ``max_steps`` accepted states; a
-    solve that is not differentiated stores nothing.
+    of a differentiated solve stores up to ``max_steps`` accepted states (not in
+    "tangents" mode); a solve that is not differentiated stores nothing.
 
-    jacobians : how lam_k = (dPhi/dy_k)^T lam_{k+1} is formed, for n state numbers
-        and P differentiated parameters: "forward" or "reverse" build the step
-        Jacobians dPhi/dy (n x n) and dPhi/dp (n x P) for a chunk of steps at once
-        (n + P tangent or n cotangent directions per step, vectorised over the
-        chunk); "vjp" takes one vector-Jacobian product per step in sequence
-        (cost independent of n and P, but each VJP pays the CPU's per-kernel
-        overhead); "auto": forward while n + P <= ``max_jacobian_directions`` and
-        the step has forward-mode rules, else vjp. Measured (benchmarks/
-        batch_throughput.py and the steering task): the falling cat (n = 5, P = 2)
-        is fastest with chunked Jacobians, the spherical robot (n = 29, P = 21)
-        with VJPs.
+    jacobians : how the backward pass is formed, for D differentiated numbers
+        (the parts of the initial state and of the system/control parameters that
+        carry a gradient), n state numbers:
+        "tangents" -- no recording: the forward solve carries the D tangents
+        dy/d(inputs) along (forward sensitivities, diffrax's ForwardMode steps),
+        and the backward pass is one product per output; cost grows with D.
+        "vjp" -- record the steps, then one vector-Jacobian product per step,
+        last to first; cost independent of D.
+        "forward" / "reverse" -- record the steps, then build the step Jacobians
+        dPhi/dy (n x n) and dPhi/dp (n x D) for a chunk of steps at a time by
+        forward / reverse mode, and run the recursion as matrix-vector products.
+        "auto": "tangents" while D <= ``max_tangents`` and the step has
+        forward-mode rules, else "vjp". Measured on the falling cat (n = 5, rtol
+        1e-10, benchmarks/batch_throughput.py): D = 2 tangents ~2.3-2.5x a forward
+        solve, per-step VJPs 6-9x, chunked forward Jacobians 12x; D = 7 tangents
+        7-8x, VJPs 6-7x.
+    max_tangents : the largest D for which "auto" picks "tangents".
     chunk : steps whose Jacobians are evaluated together in one vectorised call
-        (memory: chunk x n x (n + P) floats).
+        ("forward"/"reverse"; memory: chunk x n x (n + D) floats).
     max_steps : simulate()'s default step budget under this adjoint (each
         differentiated solve records max_steps x n floats; filling a larger
         buffer costs time on every gradient).
@@ -96,12 +116,15 @@ class DiscreteAdjoint(eqx.Module):
 
     jacobians: str = eqx.field(default="auto", static=True)
     chunk: int = eqx.field(default=64, static=True)
-    max_jacobian_directions: int = eqx.field(default=16, static=True)
+    max_tangents: int = eqx.field(default=4, static=True)
     max_steps: int = eqx.field(default=4096, static=True)
 
     def __check_init__(self):
-        if self.jacobians not in ("auto", "forward", "reverse", "vjp"):
-            raise ValueError(f"jacobians must be 'auto', 'forward', 'reverse' or 'vjp', got {self.jacobians!r}")
+        if self.jacobians not in _MODES:
+            raise ValueError(f"jacobians must be one of {', '.join(map(repr, _MODES))}, got {self.jacobians!r}")
+
+
+_MODES = ("auto", "tangents", "vjp", "forward", "reverse")
 
 
 def _save_state(t, y, args):
@@ -154,10 +177,81 @@ def discrete_solve(diff, problem: _Problem, adjoint: DiscreteAdjoint):
 
 @discrete_solve.def_fwd
 def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
-    del perturbed, adjoint
+    if _mode(adjoint, diff, perturbed, problem) == "tangents":
+        return _tangent_forward(perturbed, diff, problem)
     y0, args = diff
     out, steps = problem.run(y0, args, record=True)
     return out, (steps, out["t_final"])
+
+
+def _mode(adjoint: DiscreteAdjoint, diff, perturbed, problem: _Problem) -> str:
+    """The way of forming the backward pass (``DiscreteAdjoint.jacobians``) for this
+    solve; the forward and the backward pass call it with the same arguments."""
+    if adjoint.jacobians != "auto":
+        return adjoint.jacobians
+    D = sum(int(np.prod(jnp.shape(a))) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
+    if D <= adjoint.max_tangents and _has_forward_rules(problem, *diff):
+        return "tangents"
+    return "vjp"
+
+
+def _has_forward_rules(problem: _Problem, y0, args) -> bool:
+    """Whether one step can be differentiated in forward mode (an SVD inside a
+    projection, for one, has no forward-mode rule)."""
+    t0 = jnp.asarray(problem.t0, float)
+
+    def step(y):
+        state = problem.solver.init(problem.term, t0, t0, y, args)
+        return problem.solver.step(problem.term, t0, t0, y, args, state, False)[0]
+
+    try:
+        jax.eval_shape(lambda: jax.jvp(step, (y0,), (y0,)))
+    except NotImplementedError:
+        return False
+    return True
+
+
+def _tangent_forward(perturbed, diff, problem: _Problem):
+    """"tangents": the solve with the tangents of its outputs in all D differentiated
+    input directions carried along (diffrax's ForwardMode steps, vectorised over the
+    directions; the primal is computed once). Residuals: the Jacobians of the saved
+    states, the final state and the final time (a guard's event time) in those inputs."""
+    dyn = eqx.filter(diff, perturbed)
+    stat = eqx.filter(diff, perturbed, inverse=True)
+    flat, unravel = ravel_pytree(dyn)
+
+    def solve(flat):
+        y0, args = eqx.combine(unravel(flat), stat)
+        out, _ = problem.run(y0, args, record=False, adjoint=diffrax.ForwardMode())
+        return (out["ys"], out["y_end"], out["t_final"]), out
+
+    jac, out = jax.jacfwd(solve, has_aux=True)(flat)
+    return out, (jac, out["ts"] <= out["t_final"])
+
+
+def _tangent_backward(residuals, grad_out, perturbed, diff):
+    """The cotangent of the differentiated inputs: (output cotangent) . (its Jacobian),
+    summed over the outputs; saved entries past a guard's stop (inf) contribute nothing."""
+    (J_ys, J_end, J_tf), valid = residuals
+    flat, unravel = ravel_pytree(eqx.filter(diff, perturbed))
+    ct = jnp.zeros_like(flat)
+
+    def add(ct, g, J, mask=None):
+        if g is None:
+            return ct
+        if mask is not None:
+            m = mask.reshape(mask.shape + (1,) * (g.ndim - 1))
+            g, J = jnp.where(m, g, 0.0), jnp.where(m[..., None], J, 0.0)
+        return ct + jnp.tensordot(g, J, axes=g.ndim)
+
+    none = lambda x: x is None  # noqa: E731
+    for g, J in zip(jtu.tree_leaves(grad_out["ys"], is_leaf=none), jtu.tree_leaves(J_ys)):
+        ct = add(ct, g, J, valid)
+    if grad_out["y_end"] is not None:
+        for g, J in zip(jtu.tree_leaves(grad_out["y_end"], is_leaf=none), jtu.tree_leaves(J_end)):
+            ct = add(ct, g, J)
+    ct = add(ct, grad_out["t_final"], J_tf)
+    return unravel(ct)
 
 
 def _zeros_if_none(ct, like):
@@ -169,6 +263,9 @@ def _zeros_if_none(ct, like):
 
 @discrete_solve.def_bwd
 def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
+    mode = _mode(adjoint, diff, perturbed, problem)
+    if mode == "tangents":
+        return _tangent_backward(residuals, grad_out, perturbed, diff)
     (ts_rec, ys_rec), t_final = residuals
     y0, args = diff
     # Only the perturbed parameters get cotangents: fewer directions for the step Jacobians.
@@ -279,14 +376,6 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
         _, lam, ct_p = jax.lax.while_loop(lambda c: c[0] >= 0, chunk_body, (n_chunks - 1, lam, ct_p))
         return lam, ct_p
 
-    mode = adjoint.jacobians
-    if mode == "auto":
-        mode = "forward" if n + P <= adjoint.max_jacobian_directions else "vjp"
-        if mode == "forward":
-            try:  # some steps have no forward-mode rule (e.g. an SVD inside a projection)
-                jax.eval_shape(lambda: step_jacobians(y_flat0, t0, t0, jax.jacfwd))
-            except NotImplementedError:
-                mode = "vjp"
     if mode == "vjp":
         lam, ct_p = _sequential_vjps(step, y_at, t_at, M, lam, ct_p, p_flat, A_k, A_v)
     else:
