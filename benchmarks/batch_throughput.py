@@ -120,6 +120,13 @@ def batches(cat, ctrl, t1, sizes):
     return rows
 
 
+#: rounds of gradient timings: every function is timed once per round, in turn, and its
+#: median over the rounds is reported (calls of 0.05-0.2 ms drift by 30 % and more within
+#: a run on this machine; timing the forward solve once, then each gradient after it, let
+#: that drift into the ratios)
+GRADIENT_ROUNDS = 5
+
+
 def gradients(cat, ctrl, x0, t1):
     def terminal(amp, adjoint):
         c = nhjax.Sinusoids(ctrl.offset, amp, ctrl.omega, ctrl.phase)
@@ -130,10 +137,11 @@ def gradients(cat, ctrl, x0, t1):
     amp = ctrl.amplitude
     fwd = jax.jit(lambda a: terminal(a, diffrax.RecursiveCheckpointAdjoint()))
     fwd(amp)
-    t_fwd = median_time(lambda: fwd(amp))
+    floor = jax.jit(lambda a: a.sum())  # a jitted call that does nothing: the per-call dispatch
+    floor(amp)
     h = 1e-6
     fd = np.array([(fwd(amp + h * e) - fwd(amp - h * e)) / (2 * h) for e in np.eye(2)])
-    rows = []
+    rows, timed = [], {"forward": fwd, "dispatch": floor}
     for name, adj, mode in [
         ("reverse, nhjax.DiscreteAdjoint() (auto: tangents)", nhjax.DiscreteAdjoint(), "rev"),
         ("reverse, DiscreteAdjoint(jacobians='vjp')", nhjax.DiscreteAdjoint(jacobians="vjp"), "rev"),
@@ -152,11 +160,20 @@ def gradients(cat, ctrl, x0, t1):
             rows.append(dict(adjoint=name, unsupported=str(e).splitlines()[0]))
             print(f"  {name}: not supported here ({str(e).splitlines()[0]})")
             continue
-        comp = time.perf_counter() - t
-        t_g = median_time(lambda f=f: f(amp))
-        rows.append(dict(adjoint=name, ratio_to_forward=t_g / t_fwd, gradient_seconds=t_g,
-                         compile_seconds=comp, error_vs_fd=float(np.max(np.abs(np.asarray(g) - fd)) / np.max(np.abs(fd)))))
-    return dict(forward_seconds=t_fwd, rows=rows)
+        timed[name] = f
+        rows.append(dict(adjoint=name, compile_seconds=time.perf_counter() - t,
+                         error_vs_fd=float(np.max(np.abs(np.asarray(g) - fd)) / np.max(np.abs(fd)))))
+    times = {k: [] for k in timed}
+    for _ in range(GRADIENT_ROUNDS):
+        for k, f in timed.items():
+            times[k].append(median_time(lambda f=f: f(amp)))
+    t_fwd = float(np.median(times["forward"]))
+    for r in rows:
+        if r["adjoint"] in times:
+            t_g = float(np.median(times[r["adjoint"]]))
+            r.update(ratio_to_forward=t_g / t_fwd, gradient_seconds=t_g)
+    return dict(forward_seconds=t_fwd, dispatch_seconds=float(np.median(times["dispatch"])),
+                rounds=GRADIENT_ROUNDS, rows=rows)
 
 
 def plot(rows, path):
@@ -193,6 +210,8 @@ def main():
     b = batches(cat, ctrl, t1, [1, 64, 1024, 16384])
     print("gradient of psi(T)^2 in the torque amplitudes:")
     g = gradients(cat, ctrl, x0, t1)
+    print(f"  forward solve {g['forward_seconds'] * 1e3:.3f} ms (a jitted call that does nothing: "
+          f"{g['dispatch_seconds'] * 1e3:.3f} ms); medians over {g['rounds']} interleaved rounds")
     for r in g["rows"]:
         if "unsupported" in r:
             continue
