@@ -39,9 +39,9 @@ differentiated input numbers:
   n x n matrix-vector products.
 
 Measured on the falling cat (n = 5, 119 steps at rtol 1e-10; benchmarks/
-batch_throughput.py): a forward solve 0.05 ms; D = 2: tangents 2.3-2.5x it,
-per-step VJPs 6-9x, chunked forward Jacobians 12x; D = 7: tangents 7-8x, VJPs
-6-7x; RecursiveCheckpointAdjoint 50x or more. These figures assume XLA compiles
+batch_throughput.py, four runs): a forward solve 0.05-0.06 ms; D = 2: tangents
+2.3-3.5x it, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x,
+RecursiveCheckpointAdjoint 126-286x; D = 7: tangents 7-8x, VJPs 6-7x. These figures assume XLA compiles
 small while loops as one function (nhjax/_xla_flags.py); kernel by kernel, a
 step's VJP was ~300 kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
 
@@ -103,9 +103,9 @@ class DiscreteAdjoint(eqx.Module):
         forward / reverse mode, and run the recursion as matrix-vector products.
         "auto": "tangents" while D <= ``max_tangents`` and the step has
         forward-mode rules, else "vjp". Measured on the falling cat (n = 5, rtol
-        1e-10, benchmarks/batch_throughput.py): D = 2 tangents ~2.3-2.5x a forward
-        solve, per-step VJPs 6-9x, chunked forward Jacobians 12x; D = 7 tangents
-        7-8x, VJPs 6-7x.
+        1e-10, benchmarks/batch_throughput.py, four runs): D = 2 tangents 2.3-3.5x
+        a forward solve, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x;
+        D = 7 (a script timing the initial state too) tangents 7-8x, VJPs 6-7x.
     max_tangents : the largest D for which "auto" picks "tangents".
     chunk : steps whose Jacobians are evaluated together in one vectorised call
         ("forward"/"reverse"; memory: chunk x n x (n + D) floats).
