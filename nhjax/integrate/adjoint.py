@@ -3,7 +3,7 @@
 Differentiating diffrax's while loop directly (``RecursiveCheckpointAdjoint``)
 replays the whole solver machinery -- step-size controller, saving, event
 checks, loop bookkeeping -- under checkpointing, and on a small system costs
-50-150 forward solves (benchmarks/batch_throughput.py). What a gradient of a
+127-286 forward solves (benchmarks/batch_throughput.py). What a gradient of a
 Runge-Kutta solution needs is much less: the accepted steps t_0 < t_1 < ... <
 t_M with their states y_k, and the vector-Jacobian product of each step map
 
@@ -29,9 +29,9 @@ differentiated input numbers:
 * "tangents" (chosen for D <= 4): nothing is recorded; the forward solve carries
   the D tangents dy/d(inputs) along with the state (forward sensitivities: the
   JVP of the same steps, vectorised over the D directions), and the backward
-  pass is (output cotangent) . (output Jacobian). The product of the same step
-  Jacobians taken in the other order, so it is the same derivative; a guard's
-  event time is differentiated too (as by RecursiveCheckpointAdjoint).
+  pass is (output cotangent) . (output Jacobian). This multiplies the same step
+  Jacobians in the other order, so it is the same derivative; a guard's event
+  time is differentiated too (as by RecursiveCheckpointAdjoint).
 * "vjp" (chosen for D > 4): record the accepted steps, then one VJP of the step
   per step from the last to the first; cost independent of D.
 * "forward" / "reverse": record, then build the step Jacobians dPhi/dy_k and
@@ -39,11 +39,12 @@ differentiated input numbers:
   n x n matrix-vector products.
 
 Measured on the falling cat (n = 5, 119 steps at rtol 1e-10; benchmarks/
-batch_throughput.py, four runs): a forward solve 0.05-0.06 ms; D = 2: tangents
-2.3-3.5x it, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x,
-RecursiveCheckpointAdjoint 126-286x; D = 7: tangents 7-8x, VJPs 6-7x. These figures assume XLA compiles
-small while loops as one function (nhjax/_xla_flags.py); kernel by kernel, a
-step's VJP was ~300 kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
+batch_throughput.py, five runs): a forward solve 0.048-0.076 ms; D = 2:
+tangents 2.3-3.5x it, per-step VJPs 4.5-13x, chunked forward Jacobians
+11-20x, RecursiveCheckpointAdjoint 127-286x; D = 7 (a script): tangents 7-8x,
+VJPs 6-7x. These figures assume XLA compiles small while loops as one
+function (nhjax/_xla_flags.py); kernel by kernel, a step's VJP was ~300
+kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
 
 Cost and memory: except in "tangents" mode the forward pass records every
 accepted step (``max_steps`` x state size floats per solve, only when
@@ -56,12 +57,12 @@ Limits (checked or documented):
   ``jax.jvp``/``jax.jacfwd``;
 * the times t0, t1 and the save times are not differentiated;
 * a solve stopped by a chart guard (``on_guard="stop"``) ends at the event time
-  t*: except in "tangents" mode this adjoint holds t* fixed (no dt*/dp term, which RecursiveCheckpointAdjoint
-  includes by differentiating the root find), and differentiates the last piece
-  as a step from t_{M-1} to t* where the forward took the dense output, so the
-  gradient belongs to a solution within one step's local error of the returned
-  one (controls gives such trial controls an infinite cost, where this does not
-  matter);
+  t*: except in "tangents" mode this adjoint holds t* fixed (no dt*/dp term,
+  which RecursiveCheckpointAdjoint includes by differentiating the root find),
+  and differentiates the last piece as a step from t_{M-1} to t* where the
+  forward took the dense output, so the gradient belongs to a solution within
+  one step's local error of the returned one (controls gives such trial
+  controls an infinite cost, where this does not matter);
 * the solver's state must be a function of (t, y) alone (explicit Runge-Kutta,
   FSAL or not: RKMK45, RKMK4, diffrax's explicit tableaus, ``ProjectedSolver``
   around them).
@@ -103,7 +104,7 @@ class DiscreteAdjoint(eqx.Module):
         forward / reverse mode, and run the recursion as matrix-vector products.
         "auto": "tangents" while D <= ``max_tangents`` and the step has
         forward-mode rules, else "vjp". Measured on the falling cat (n = 5, rtol
-        1e-10, benchmarks/batch_throughput.py, four runs): D = 2 tangents 2.3-3.5x
+        1e-10, benchmarks/batch_throughput.py, five runs): D = 2 tangents 2.3-3.5x
         a forward solve, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x;
         D = 7 (a script timing the initial state too) tangents 7-8x, VJPs 6-7x.
     max_tangents : the largest D for which "auto" picks "tangents".
