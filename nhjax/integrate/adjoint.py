@@ -77,7 +77,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 from jax.flatten_util import ravel_pytree
 
 __all__ = ["DiscreteAdjoint"]
@@ -178,19 +177,24 @@ def discrete_solve(diff, problem: _Problem, adjoint: DiscreteAdjoint):
 
 @discrete_solve.def_fwd
 def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
-    if _mode(adjoint, diff, perturbed, problem) == "tangents":
-        return _tangent_forward(perturbed, diff, problem)
-    y0, args = diff
-    out, steps = problem.run(y0, args, record=True)
-    return out, (steps, out["t_final"])
+    # the mode travels to the backward pass with the residuals (a str: equinox keeps
+    # non-array residuals static), so "auto"'s forward-rule check is traced once
+    mode = _mode(adjoint, diff, perturbed, problem)
+    if mode == "tangents":
+        out, residuals = _tangent_forward(perturbed, diff, problem)
+    else:
+        y0, args = diff
+        out, steps = problem.run(y0, args, record=True)
+        residuals = (steps, out["t_final"])
+    return out, (mode, residuals)
 
 
 def _mode(adjoint: DiscreteAdjoint, diff, perturbed, problem: _Problem) -> str:
     """The way of forming the backward pass (``DiscreteAdjoint.jacobians``) for this
-    solve; the forward and the backward pass call it with the same arguments."""
+    solve, chosen in the forward pass."""
     if adjoint.jacobians != "auto":
         return adjoint.jacobians
-    D = sum(int(np.prod(jnp.shape(a))) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
+    D = sum(jnp.size(a) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
     if D <= adjoint.max_tangents and _has_forward_rules(problem, *diff):
         return "tangents"
     return "vjp"
@@ -246,11 +250,9 @@ def _tangent_backward(residuals, grad_out, perturbed, diff):
         return ct + jnp.tensordot(g, J, axes=g.ndim)
 
     none = lambda x: x is None  # noqa: E731
-    for g, J in zip(jtu.tree_leaves(grad_out["ys"], is_leaf=none), jtu.tree_leaves(J_ys)):
-        ct = add(ct, g, J, valid)
-    if grad_out["y_end"] is not None:
-        for g, J in zip(jtu.tree_leaves(grad_out["y_end"], is_leaf=none), jtu.tree_leaves(J_end)):
-            ct = add(ct, g, J)
+    for g_tree, J_tree, mask in ((grad_out["ys"], J_ys, valid), (grad_out["y_end"], J_end, None)):
+        for g, J in zip(jtu.tree_leaves(g_tree, is_leaf=none), jtu.tree_leaves(J_tree)):
+            ct = add(ct, g, J, mask)
     ct = add(ct, grad_out["t_final"], J_tf)
     return unravel(ct)
 
@@ -264,7 +266,7 @@ def _zeros_if_none(ct, like):
 
 @discrete_solve.def_bwd
 def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
-    mode = _mode(adjoint, diff, perturbed, problem)
+    mode, residuals = residuals
     if mode == "tangents":
         return _tangent_backward(residuals, grad_out, perturbed, diff)
     (ts_rec, ys_rec), t_final = residuals
