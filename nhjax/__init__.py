@@ -27,6 +27,7 @@ from .errors import (  # noqa: E402
 )
 from .integrate import (  # noqa: E402
     BatchError,
+    BatchTrajectory,
     DiscreteAdjoint,
     RKMK4,
     RKMK45,
@@ -41,6 +42,7 @@ from .integrate import (  # noqa: E402
 
 __all__ = [
     "BatchError",
+    "BatchTrajectory",
     "DiscreteAdjoint",
     "ChartSingularityError",
     "ConstraintViolationError",

@@ -1,13 +1,14 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
 from .adjoint import DiscreteAdjoint
-from .batch import BatchError, simulate_batch, stack
+from .batch import BatchError, BatchTrajectory, simulate_batch, stack
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
 from .simulate import Trajectory, simulate
 
 __all__ = [
     "BatchError",
+    "BatchTrajectory",
     "DiscreteAdjoint",
     "LieODETerm",
     "PiecewiseConstant",
