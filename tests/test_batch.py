@@ -19,7 +19,8 @@ def test_batch_equals_single_including_very_different_step_counts():
     cat = FallingCat()
     # calm members and one with a fast twist (many more steps)
     X = jnp.array([[0.8, 0, 0, 0, 0.5], [0.9, 0, 0, 0.1, 0.3], [0.7, 0, 0, 0, 6.0], [1.0, 1.0, 0, -0.2, 0.5]])
-    tr = nhjax.simulate_batch(cat, X, 10.0, control=CTRL, rtol=1e-9, atol=1e-9, saveat=5, chunk_size=3)
+    tr = nhjax.simulate_batch(cat, X, 10.0, control=CTRL, rtol=1e-9, atol=1e-9, saveat=5, chunk_size=3,
+                              track_work=True)
     steps = np.asarray(tr.num_accepted_steps)
     assert steps.max() > 3 * steps.min()
     for i in range(X.shape[0]):
@@ -310,3 +311,27 @@ def test_new_values_of_the_same_structure_do_not_trace_again():
         one = nhjax.simulate(FallingCat(lam=lam), X[i] + 0.01, 2.5, control=other, rtol=1e-9, atol=1e-9,
                              saveat=2)
         np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
+
+
+def test_work_tracking_leaves_the_steps_alone_and_is_on_where_it_is_the_only_report():
+    """The work of the inputs stays out of the error norm: the same states and steps with
+    and without it. A batch tracks it by default only for a system with no invariant or
+    constraint of its own (the cat reports its angular momentum; a forced oscillator
+    reports nothing else)."""
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8, chi_dot=0.5)
+    on = nhjax.simulate(cat, x0, 5.0, control=CTRL, track_work=True, saveat=7)
+    off = nhjax.simulate(cat, x0, 5.0, control=CTRL, track_work=False, saveat=7)
+    np.testing.assert_array_equal(on.xs, off.xs)
+    assert int(on.num_steps) == int(off.num_steps)
+    assert float(on.invariant_drift["energy - work"]) < 1e-8  # the work is still accurate
+    X = jnp.stack([x0, cat.initial_state(0.9, chi_dot=0.3)])
+    assert "energy - work" not in nhjax.simulate_batch(cat, X, 2.0, control=CTRL).invariant_drift
+    osc = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 0.5 * q @ q,
+                     force=lambda t, q, qd, u: u, control_dim=1)
+    push = nhjax.Sinusoids([0.0], [0.3], [1.3])
+    tr = nhjax.simulate_batch(osc, jnp.array([[1.0, 0.0], [0.0, 2.0]]), 6.0, control=push)
+    one = nhjax.simulate(osc, jnp.array([0.0, 2.0]), 6.0, control=push, saveat=2)
+    np.testing.assert_allclose(tr.invariant_drift["energy - work"][1], one.invariant_drift["energy - work"],
+                               atol=1e-13)
+    assert float(tr.invariant_drift["energy - work"].max()) < 1e-6  # energies ~1-2 J, rtol 1e-8

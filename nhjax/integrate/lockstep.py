@@ -238,8 +238,6 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
                result=jnp.full(M, diffrax.RESULTS.internal_error._value, jnp.int32))
     if not ends_only:
         n_ts = sub.ts.shape[0]
-        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
-        out["ys"] = jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape, jnp.inf, e.dtype), ex)
         out["save_index"] = zeros_m
     if event is not None:
         out.update(ev_mask=jnp.zeros(M, bool), ev_tprev=t0_m, ev_tnext=t0_m, ev_y=y0,
@@ -268,14 +266,16 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     c["next"] = jnp.minimum(n_run, L)
     if event is not None:
         out["ev_sstate"] = jtu.tree_map(lambda s: jnp.zeros(s.shape[:-1] + (M,), s.dtype), c["sstate"])
-    c["out"] = out
+    if not ends_only:  # the saved states, written by member index as the lanes pass save times
+        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
+        c["ys"] = jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape, jnp.inf, e.dtype), ex)
 
     def active_of(c):
         t1 = problem_of(c["pr"]).t1
         return ((c["mem"] < M) & (c["tprev"] < t1) & (c["result"] == successful)
                 & (c["num_steps"] < max_steps))
 
-    def retire(c, lanes_idx):
+    def retire(c, out, lanes_idx):
         """Write the lanes ``lanes_idx`` (L: none) into their members' results; empty them."""
         li = jnp.minimum(lanes_idx, L - 1)
         has = (lanes_idx < L) & (c["mem"][li] < M)
@@ -290,15 +290,16 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         if event is not None:
             vals.update(ev_mask=g("ev_mask"), ev_tprev=g("ev_tprev"), ev_tnext=g("ev_tnext"),
                         ev_y=g("ev_y"), ev_sstate=g("ev_sstate"), ev_made_jump=g("ev_made_jump"))
-        o = dict(c["out"])
-        o.update(_put({k: o[k] for k in vals}, mem, vals))
-        return dict(c, out=o, mem=c["mem"].at[jnp.where(has, li, L)].set(M, mode="drop"))
+        out = dict(out)
+        out.update(_put({k: out[k] for k in vals}, mem, vals))
+        return dict(c, mem=c["mem"].at[jnp.where(has, li, L)].set(M, mode="drop")), out
 
-    def refill(c):
+    def refill(state):
         """Retire up to R idle lanes and start the next members of the queue in them."""
+        c, out = state
         idle = ~active_of(c)
         sel = jnp.nonzero(idle, size=R, fill_value=L)[0]
-        c = retire(c, sel)
+        c, out = retire(c, out, sel)
         q = c["next"] + jnp.arange(R)
         valid = (sel < L) & (q < n_run)
         vals = start_values(order[jnp.minimum(q, M - 1)])
@@ -306,7 +307,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         c = dict(c)
         c.update(_put({k: c[k] for k in vals}, dest, vals))
         c["next"] = c["next"] + jnp.sum(valid).astype(jnp.int32)
-        return c
+        return c, out
 
     def want_refill(c):
         return (c["next"] < n_run) & (jnp.sum(~active_of(c)) >= R)
@@ -367,9 +368,8 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
                 return idx + pend, ys
 
             idx, ys = jax.lax.while_loop(lambda sc: jnp.any(pending(sc)), save_one,
-                                         (c["save_index"], c["out"]["ys"]))
-            new["save_index"] = idx
-            new["out"] = dict(c["out"], ys=ys)
+                                         (c["save_index"], c["ys"]))
+            new["save_index"], new["ys"] = idx, ys
 
         if event is not None:
             val = vm(lambda pr_, a_, t, yy: event.cond_fn(t, yy, a_), pr, a, tp, new["y"])
@@ -379,27 +379,35 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
             new["ev_tprev"], new["ev_tnext"] = c["tprev"], c["tnext"]
             new["ev_y"], new["ev_sstate"], new["ev_made_jump"] = c["y"], c["sstate"], c["made_jump"]
         new["result"] = res
-        lane_keys = [k for k in new if k not in ("out", "save_index", "next", "mem", "pr", "a")]
+        lane_keys = [k for k in new if k not in ("ys", "save_index", "next", "mem", "pr", "a")]
         for k in lane_keys:
             new[k] = _where(active, new[k], c[k])
         return new
 
     step_fn = with_fast_trig(body, c) if fast_trig else (lambda c: (body(c), jnp.zeros((), bool)))
 
-    def loop_body(lc):
+    def steps(lc):
         c, bad = lc
         c, b = step_fn(c)
-        c = jax.lax.while_loop(want_refill, refill, c)
         return c, bad | b
 
-    def loop_cond(lc):
-        c, bad = lc
+    def run_lanes(state):
+        """Step the lanes until enough of them are idle to be refilled (or, once the queue
+        is empty, until all are done), then refill. The stepping loop carries only the
+        lanes (and the saved states, if any), so for small lane counts XLA compiles it
+        into one function (nhjax/_xla_flags.py) instead of dispatching each kernel."""
+        c, out, bad = state
+        c, bad = jax.lax.while_loop(lambda lc: jnp.any(active_of(lc[0])) & ~want_refill(lc[0]) & ~lc[1],
+                                    steps, (c, bad))
+        c, out = jax.lax.while_loop(lambda st: want_refill(st[0]), refill, (c, out))
+        return c, out, bad
+
+    def queue_left(state):
+        c, _, bad = state
         return (jnp.any(active_of(c)) | (c["next"] < n_run)) & ~bad
 
-    c = jax.lax.while_loop(want_refill, refill, c)  # the first L members
-    c, bad = jax.lax.while_loop(loop_cond, loop_body, (c, jnp.zeros((), bool)))
-    c = retire(c, lane)
-    o = c["out"]
+    c, out, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out, jnp.zeros((), bool)))
+    c, o = retire(c, out, lane)
     tfinal, yfinal, result = o["t_final"], o["y_end"], o["result"]
 
     event_mask = None
@@ -437,7 +445,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     else:
         rows = jnp.arange(n_ts)[:, None]
         ts = jnp.where(rows < o["save_index"][None], problem.sub.ts, jnp.inf)
-        ys = o["ys"]
+        ys = c["ys"]
         if event is not None:  # nothing saved after a guard's event time
             late = ts > tfinal[None]
             ts = jnp.where(late, jnp.inf, ts)
