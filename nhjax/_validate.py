@@ -92,7 +92,7 @@ def _show_bad(value, arr: np.ndarray, bad: np.ndarray) -> str:
     if arr.ndim == 0 or arr.size <= 9:
         return _show(value)
     idx = tuple(int(i) for i in np.argwhere(bad)[0])
-    return f"{arr[idx]!r} (element {idx} of an array of shape {arr.shape})"
+    return f"{float(arr[idx])!r} (element {idx} of an array of shape {arr.shape})"
 
 
 def _describe(what: str) -> str:

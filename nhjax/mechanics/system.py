@@ -96,7 +96,7 @@ class AbstractSystem(eqx.Module):
         reach the manifold; rounds stop changing x once it is within tolerance. A
         fixed-length loop (lax.fori_loop), so jit, vmap and reverse-mode grad pass.
         """
-        scale = lambda y: 1.0 + max(jnp.max(jnp.abs(a)) for a in jtu.tree_leaves(y))  # noqa: E731
+        scale = lambda y: 1.0 + jnp.max(jnp.stack([jnp.max(jnp.abs(a)) for a in jtu.tree_leaves(y)]))  # noqa: E731
 
         def body(_, carry):
             y, r, n = carry
