@@ -1,0 +1,66 @@
+"""Long-run reliability (slow): every scene of the registry at its documented defaults,
+1e4 periods of a documented motion (benchmarks/long_run.py says which motion and what
+its period is), default simulate() settings. Bounds on the constraint residual, the
+drift of the invariants, the distance of group-valued parts from their group and the
+error against the exact solution, each about ten times what was measured
+(benchmarks/long_run.py prints the figures): a regression of the integrator, of the
+projection or of a scene's equations shows up as a bound crossed."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from nhjax.scenes import REGISTRY
+
+_spec = importlib.util.spec_from_file_location(
+    "long_run", Path(__file__).resolve().parent.parent / "benchmarks" / "long_run.py")
+long_run = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(long_run)
+
+# scene -> bounds (constraint residual, absolute invariant drift, exact error); None: not
+# applicable (no constraints / invariants / exact solution). Measured values in the
+# comments (rtol = atol = 1e-8, 1e4 periods).
+BOUNDS = {
+    "FallingCat": dict(constraint=None, invariant=1e-8, exact=None),
+    "FallingCatKinematic": dict(constraint=None, invariant=None, exact=1e-8),  # 0 (exact steps)
+    "FallingCatAttitudes": dict(constraint=None, invariant=1e-8, exact=None),
+    "FallingCatLagrangian": dict(constraint=1e-6, invariant=1e-6, exact=None),  # 1.1e-7
+    "FallingCatSmooth": dict(constraint=None, invariant=None, exact=50.0),  # 7.4 rad of phi ~ 2.6e4 rad
+    "Skate": dict(constraint=1e-3, invariant=1e-6, exact=None),  # 1.3e-4 (unprojected DAE in R^6)
+    "SkateSE2": dict(constraint=1e-12, invariant=1e-10, exact=1e-7),  # 0, 6.1e-9
+    "BallOnPlatter": dict(constraint=1e-12, invariant=1e-4, exact=2e-2),  # 4.4e-16, 2.4e-3
+    "RollingDisk": dict(constraint=1e-6, invariant=1e-7, exact=1e-3),  # 1.6e-8, 2.3e-5
+    "RollingDiskQuaternion": dict(constraint=1e-12, invariant=1e-2, exact=3e-2),  # 1.5e-16, 2.8e-3
+    "TwoWheeledCart": dict(constraint=3e-3, invariant=1e-3, exact=None),  # 3.3e-4 (unprojected)
+    "ShellWithTop": dict(constraint=1e-10, invariant=1e-4, exact=None),
+    "ShellWithTopReduced": dict(constraint=1e-12, invariant=1e-4, exact=None),
+    "ShellWithTopLagrangian": dict(constraint=1e-8, invariant=1e-5, exact=None),
+    "ShellWithSuslovHinge": dict(constraint=1e-12, invariant=1e-4, exact=None),
+    "ShellWithSuslovHingeZeroMomentum": dict(constraint=1e-12, invariant=1e-6, exact=None),
+    "SuslovBundle": dict(constraint=1e-12, invariant=1e-4, exact=None),
+}
+
+
+def test_every_registered_scene_has_a_long_run_case():
+    assert set(BOUNDS) == set(REGISTRY)
+    for name in REGISTRY:
+        system, x0, control, period, what, err = long_run.case(name)
+        assert period > 0 and what
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", sorted(REGISTRY))
+def test_long_run_stays_on_its_manifold_and_keeps_its_invariants(name):
+    r = long_run.run(name)
+    b = BOUNDS[name]
+    assert r["steps"] > 0 and r["t1_s"] == pytest.approx(long_run.PERIODS * r["period_s"])
+    assert r["group_residual"] < 1e-12, r
+    if b["constraint"] is not None:
+        assert r["constraint_residual"] < b["constraint"], r
+    if b["invariant"] is not None:
+        assert r["invariants"], r
+        assert np.isfinite(r["invariant_drift_abs"]) and r["invariant_drift_abs"] < b["invariant"], r
+    if b["exact"] is not None:
+        assert r["exact_error"] < b["exact"], r
