@@ -27,6 +27,7 @@ import platform
 import time
 from pathlib import Path
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,7 +40,7 @@ OUT = Path(__file__).resolve().parent.parent / "experiments" / "out" / "bench"
 PERIODS = 10_000
 
 
-class Twist(nhjax.mechanics.AbstractSystem.__base__):  # an equinox Module
+class Twist(eqx.Module):
     """Velocity control of the cat at fixed theta: chi' = rate."""
 
     rate: float
@@ -48,7 +49,7 @@ class Twist(nhjax.mechanics.AbstractSystem.__base__):  # an equinox Module
         return jnp.stack([jnp.zeros_like(t), jnp.full_like(t, self.rate)])
 
 
-class Circle(nhjax.mechanics.AbstractSystem.__base__):
+class Circle(eqx.Module):
     """Velocity control of the smooth cat: w runs round a circle, w' = rate (-w2, w1)."""
 
     rate: float

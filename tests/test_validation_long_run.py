@@ -7,6 +7,7 @@ error against the exact solution, each about ten times what was measured
 projection or of a scene's equations shows up as a bound crossed."""
 
 import importlib.util
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ from nhjax.scenes import REGISTRY
 _spec = importlib.util.spec_from_file_location(
     "long_run", Path(__file__).resolve().parent.parent / "benchmarks" / "long_run.py")
 long_run = importlib.util.module_from_spec(_spec)
+sys.modules.setdefault("long_run", long_run)  # equinox modules defined there look their module up
 _spec.loader.exec_module(long_run)
 
 # scene -> bounds (constraint residual, absolute invariant drift, exact error); None: not
@@ -34,8 +36,8 @@ BOUNDS = {
     "RollingDisk": dict(constraint=1e-6, invariant=1e-7, exact=1e-3),  # 1.6e-8, 2.3e-5
     "RollingDiskQuaternion": dict(constraint=1e-12, invariant=1e-2, exact=3e-2),  # 1.5e-16, 2.8e-3
     "TwoWheeledCart": dict(constraint=3e-3, invariant=1e-3, exact=None),  # 3.3e-4 (unprojected)
-    "ShellWithTop": dict(constraint=1e-10, invariant=1e-4, exact=None),
-    "ShellWithTopReduced": dict(constraint=1e-12, invariant=1e-4, exact=None),
+    "ShellWithTop": dict(constraint=1e-6, invariant=1e-3, exact=None),  # 7.9e-8, 9.6e-5
+    "ShellWithTopReduced": dict(constraint=1e-12, invariant=4e-4, exact=None),  # 1.3e-15, 3.8e-5
     "ShellWithTopLagrangian": dict(constraint=1e-8, invariant=1e-5, exact=None),
     "ShellWithSuslovHinge": dict(constraint=1e-12, invariant=1e-4, exact=None),
     "ShellWithSuslovHingeZeroMomentum": dict(constraint=1e-12, invariant=1e-6, exact=None),
@@ -56,7 +58,7 @@ def test_long_run_stays_on_its_manifold_and_keeps_its_invariants(name):
     r = long_run.run(name)
     b = BOUNDS[name]
     assert r["steps"] > 0 and r["t1_s"] == pytest.approx(long_run.PERIODS * r["period_s"])
-    assert r["group_residual"] < 1e-12, r
+    assert r["group_residual"] < 1e-11, r  # ShellWithTop: 1.3e-13
     if b["constraint"] is not None:
         assert r["constraint_residual"] < b["constraint"], r
     if b["invariant"] is not None:
