@@ -216,6 +216,7 @@ def main(names=None, periods=PERIODS):
 if __name__ == "__main__":
     import sys
 
-    args = [a for a in sys.argv[1:] if not a.startswith("--periods=")]
+    # scene names (others, e.g. "long_run" from `nhjax bench long_run`, are ignored) and --periods=N
+    args = [a for a in sys.argv[1:] if a in S.REGISTRY]
     per = [int(float(a.split("=")[1])) for a in sys.argv[1:] if a.startswith("--periods=")]
     main(args or None, per[0] if per else PERIODS)
