@@ -33,11 +33,24 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 
+from .._validate import (
+    check_control,
+    check_saveat,
+    check_state,
+    choice,
+    member_report,
+    raise_for_report,
+    runtime_checks,
+    simulate_memory,
+    solver_settings,
+    time_span,
+)
 from ..errors import (
     ChartSingularityError,
-    ConstraintViolationError,
     IntegrationError,
-    RegularityError,
+    ParameterError,
+    StateError,
+    TimeSpanError,
 )
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
@@ -317,82 +330,52 @@ def _error_checks(on: bool):
 
 
 def _save_times(saveat, t0, t1):
+    check_saveat(saveat, t0, t1)
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)):
-        if saveat < 2:
-            raise ValueError(f"saveat={saveat}: ask for at least 2 saved times (t0 and t1)")
         return jnp.linspace(t0, t1, int(saveat))
     ts = jnp.asarray(saveat, dtype=float)
-    if ts.ndim != 1 or ts.shape[0] == 0:
-        raise ValueError("saveat must be an int (number of equally spaced times) or a 1-D array of times")
     if not _is_traced(ts, t0, t1):
         tsn = np.asarray(ts)
         if np.any(np.diff(tsn) < 0) or tsn[0] < float(t0) - 1e-12 or tsn[-1] > float(t1) + 1e-12:
-            raise ValueError(
-                f"saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]"
+            raise TimeSpanError(
+                f"simulate: saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]; "
+                f"got {tsn.size} times from {tsn.min():.6g} to {tsn.max():.6g}"
             )
     return ts
 
 
+#: member_report compiled (one program per system structure, control and projection flag)
+_member_report = eqx.filter_jit(member_report)
+
+
 @eqx.filter_jit
 def _initial_report(system, control, x0, t0, project):
-    """Everything simulate() checks about x0, in one compiled call.
+    """Everything simulate() checks about x0, in one compiled call: the legacy view
+    (x0, finite, constraint residuals, guards, margins) of ``nhjax._validate.member_report``,
+    which also checks group membership and the control's value (use that per member).
 
     Shape errors of the control are raised while tracing (they depend on
     structure only); the numbers come back as a small pytree.
     """
-    if control is not None:
-        shape = jnp.shape(control(t0, x0))
-        if shape != (system.control_dim,):
-            raise ValueError(
-                f"control(t, x) returned shape {shape}; {type(system).__name__} has "
-                f"{system.control_dim} inputs"
-            )
-    if project:
-        x0 = system.project(t0, x0)
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jtu.tree_leaves(x0)]))
-    residuals = {k: _max_abs(v) for k, v in system.constraints(t0, x0).items()}
-    # the regularity margins are a check, not an output: out of the derivative (their SVD
-    # has no forward-mode rule, which would make every gradient through x0 fail)
-    margins = dict(system.regularity(t0, jax.lax.stop_gradient(x0)))
-    return x0, finite, residuals, dict(system.guards(x0)), margins
+    x0, r = member_report(system, control, x0, t0, project)
+    return x0, r["finite"], r["constraints"], r["guards"], r["margins"]
 
 
 def _check_inputs(system, control, x0, t0, constraint_tol, project):
-    """Validate shapes, finiteness and constraints of x0; returns x0 (maybe projected)."""
-    names = system.state_names
-    if names and hasattr(x0, "shape") and x0.shape != (len(names),):
-        raise ValueError(
-            f"x0 has shape {x0.shape}; {type(system).__name__} expects {len(names)} "
-            f"components {names}"
-        )
-    if control is not None:
-        if system.control_dim == 0:
-            raise ValueError(f"{type(system).__name__} takes no control input")
-        if not callable(control):
-            raise TypeError("control must be callable as control(t, x) -> array of inputs")
-    x0p, finite, residuals, guards, margins = _initial_report(
-        system, control, x0, jnp.asarray(t0, float), project
-    )
-    guard_names, constrained = tuple(guards), _drifting_constraints(residuals)
-    if _is_traced(x0, system, control, finite):  # under an outer jit everything is traced
+    """Validate structure, shapes, finiteness, group membership and constraints of x0
+    (``nhjax._validate``); returns (x0 (maybe projected), guard names, whether the
+    system has constraints to project onto after each step). Concrete values raise the
+    named errors of ``nhjax.errors``; traced ones get the same words as runtime errors."""
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    x0p, report = _member_report(system, control, x0, jnp.asarray(t0, float), project)
+    guard_names, constrained = tuple(report["guards"]), _drifting_constraints(report["constraints"])
+    if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
+        x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
         return x0p, guard_names, constrained
-    finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
-    if not finite:
-        raise ValueError("initial state x0 contains NaN or inf")
-    for name, res in residuals.items():
-        if res > constraint_tol:
-            raise ConstraintViolationError(name, float(res), constraint_tol)
-    for name, g in guards.items():
-        if g <= 0:
-            raise ChartSingularityError(
-                name, float(t0), "the initial state is already outside the chart. "
-                + system.guard_hints.get(name, "")
-            )
-    for name, margin in margins.items():  # after the guards: outside a chart, say that first
-        if not margin > 0:
-            raise RegularityError(name, float(margin), system.regularity_hints.get(name, ""))
+    raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
     return x0p, guard_names, constrained
 
 
@@ -535,13 +518,22 @@ def simulate(
     diagnostics : compute invariants, constraint residuals and the controls at the
         saved times (False: a smaller program, e.g. inside an optimizer).
     """
-    if on_guard not in ("raise", "stop"):
-        raise ValueError("on_guard must be 'raise' or 'stop'")
+    choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
+    if not isinstance(system, AbstractSystem):
+        raise ParameterError(
+            f"simulate: system must be an nhjax system (nhjax.mechanics.AbstractSystem, e.g. a scene or a "
+            f"Lagrangian), got {type(system).__name__}", "system", system)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol)
+    t0, t1 = time_span(t0, t1, owner="simulate")
+    check_saveat(saveat, t0, t1, owner="simulate")
     # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
     traced = _is_traced(x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
-    if not traced and not float(t1) > float(t0):
-        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
-    x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
+    try:
+        x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"simulate: x0 must be an array (or a pytree of arrays) of real numbers: {e}") from None
+    simulate_memory(system, x0, saveat, stores_steps=traced and isinstance(adjoint, DiscreteAdjoint),
+                    max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
     x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
     if project_steps is None:
         project_steps = constrained
