@@ -335,3 +335,21 @@ def test_work_tracking_leaves_the_steps_alone_and_is_on_where_it_is_the_only_rep
     np.testing.assert_allclose(tr.invariant_drift["energy - work"][1], one.invariant_drift["energy - work"],
                                atol=1e-13)
     assert float(tr.invariant_drift["energy - work"].max()) < 1e-6  # energies ~1-2 J, rtol 1e-8
+
+
+def test_members_off_their_group_are_named_and_not_solved():
+    """Each member's attitude is checked for membership of SO(3) (the validation layer's
+    member report, vmapped in the chunk): a scaled rotation is a bad x0; with
+    project=True it is projected onto the group and solved like simulate(project=True)."""
+    att = FallingCat().attitude_model()
+    X = nhjax.stack([att.initial_state(0.8, chi_dot=c) for c in (0.5, 1.5)])
+    X = jax.tree_util.tree_map(lambda a: a, X)
+    bad = (X[0].at[1].multiply(2.0),) + tuple(X[1:])
+    tr = nhjax.simulate_batch(att, bad, 1.0, on_error="return")
+    assert tr.status_names() == ["ok", "bad x0"] and "not on its group" in tr.reasons[1]
+    with pytest.raises(nhjax.BatchError, match="member 1: .*not on its group"):
+        nhjax.simulate_batch(att, bad, 1.0)
+    fixed = nhjax.simulate_batch(att, bad, 1.0, project=True)
+    one = nhjax.simulate(att, jax.tree_util.tree_map(lambda a: a[1], bad), 1.0, project=True, saveat=2)
+    for a, b in zip(jax.tree_util.tree_leaves(fixed.xs), jax.tree_util.tree_leaves(one.xs)):
+        np.testing.assert_allclose(a[1], b, rtol=1e-12, atol=1e-12)

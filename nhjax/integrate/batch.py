@@ -47,6 +47,17 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from .._validate import (
+    check_control,
+    check_saveat,
+    check_state,
+    choice,
+    integer,
+    member_failures,
+    member_report,
+    solver_settings,
+    time_span,
+)
 from ..errors import NhjaxError
 from .lockstep import _lanes_last, lockstep_solve, vmap_lanes
 from .simulate import (
@@ -56,7 +67,6 @@ from .simulate import (
     _defines_power,
     _drifting_constraints,
     _finish,
-    _initial_report,
     _reports_accuracy,
     _solve,
 )
@@ -133,23 +143,27 @@ TRACES = collections.Counter()
 
 
 def _report_and_configure(system, x0, control, t0, tol, project, options, axes):
-    """Inside a chunk's trace: every member's initial-state report (simulate()'s
-    _initial_report, vmapped), the members not to solve (``skip``), and the options
-    with the structural defaults resolved (guard names, projection after each step)."""
-    x0p, finite, residuals, guards, margins = eqx.filter_vmap(
-        lambda s, x, c: _initial_report(s, c, x, t0, project), in_axes=axes
+    """Inside a chunk's trace: every member's initial-state report (nhjax._validate's
+    member_report, vmapped: finiteness, group membership, constraints, chart guards,
+    regularity, the control at t0; projected if asked), the members not to solve
+    (``skip``), and the options with the structural defaults resolved (guard names,
+    projection after each step)."""
+    x0p, report = eqx.filter_vmap(
+        lambda s, x, c: member_report(s, c, x, t0, project), in_axes=axes
     )(system, x0, control)
-    skip = ~finite
-    for r in residuals.values():
+    skip = ~report["finite"] | ~report["control_finite"]
+    for part in report["group"]:
+        skip = skip | ~(report["group"][part] <= tol) | ~(report["group_det"][part] > 0)
+    for r in report["constraints"].values():
         skip = skip | ~(r <= tol)
-    for m in margins.values():
+    for m in report["margins"].values():
         skip = skip | ~(m > 0)
-    for g in guards.values():
+    for g in report["guards"].values():
         skip = skip | ~(g > 0)
     if options["project_steps"] is None:
-        options = dict(options, project_steps=_drifting_constraints(residuals))
+        options = dict(options, project_steps=_drifting_constraints(report["constraints"]))
     axes = (axes[0], 0, axes[2])  # the checked (maybe projected) x0 has a member axis
-    return x0p, (finite, residuals, guards, margins), skip, tuple(guards), options, axes
+    return x0p, report, skip, tuple(report["guards"]), options, axes
 
 
 @eqx.filter_jit
@@ -290,7 +304,7 @@ class BatchTrajectory(Trajectory):
     member axis (``xs[i]`` is member i's saved states), plus per-member statuses.
 
     status : int array [B], codes into ``STATUSES``: "ok" (reached t1), "guard" (a chart
-        guard stopped it at ``t_final``; see ``guard_of``), "max_steps", "non-finite"
+        guard stopped it at ``t_final``), "max_steps", "non-finite"
         (NaN/inf in the state), "solver failure" (e.g. the minimal step size), "bad x0"
         (the initial state failed the checks and was not solved; ``reasons`` says why).
     reasons : member -> text, for every member that is not "ok".
@@ -423,10 +437,12 @@ def simulate_batch(
         members' results are intact). Members with a bad initial state are not solved.
     Other arguments as ``nhjax.simulate``.
     """
-    if on_guard not in ("raise", "stop"):
-        raise ValueError(f"on_guard must be 'raise' or 'stop', got {on_guard!r}")
-    if on_error not in ("raise", "return"):
-        raise ValueError(f"on_error must be 'raise' or 'return', got {on_error!r}")
+    owner = "simulate_batch"
+    choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
+    choice("on_error", on_error, ("raise", "return"), owner=owner)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol, owner=owner)
+    t0, t1 = time_span(t0, t1, owner=owner)
+    check_saveat(saveat, t0, t1, owner=owner)
     axes_d = {"x0": 0} if in_axes is None else dict(in_axes)
     unknown = set(axes_d) - {"system", "x0", "control"}
     if unknown:
@@ -437,21 +453,15 @@ def simulate_batch(
     x0 = jtu.tree_map(lambda a: np.asarray(a, float), x0)
     axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
     B = _batch_size((system, x0, control), axes)
-    if not float(t1) > float(t0):
-        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
-    if lanes is not None and int(lanes) < 1:
-        raise ValueError(f"lanes must be a positive integer, got {lanes}")
+    if lanes is not None:
+        lanes = integer("lanes", lanes, minimum=1, owner=owner)
+    chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
 
-    # Static checks on one member (shapes, control signature) through simulate's own checks.
+    # Static checks on one member (structure, shapes, control signature); the values of
+    # every member are checked inside the chunks (member_report).
     ex_sys, ex_x0, ex_ctrl = (_take(a, ax, 0) for a, ax in zip((system, x0, control), axes))
-    names = ex_sys.state_names
-    if names and hasattr(ex_x0, "shape") and ex_x0.shape != (len(names),):
-        raise ValueError(
-            f"each member's x0 has shape {ex_x0.shape}; {type(ex_sys).__name__} expects "
-            f"{len(names)} components {names}"
-        )
-    if ex_ctrl is not None and ex_sys.control_dim == 0:
-        raise ValueError(f"{type(ex_sys).__name__} takes no control input")
+    check_state(ex_sys, ex_x0, name="each member's x0", owner=owner)
+    check_control(ex_sys, ex_ctrl, owner=owner)
 
     if track_work is None:
         # energy - work is the batch's accuracy report of last resort: the work is an extra
@@ -578,30 +588,17 @@ def simulate_batch(
 
     traj, report = jtu.tree_map(join, *[(r[0], r[1]) for r in results])
     traj = jax.device_put(traj)
-    return _statuses(traj, report, system, axes, on_guard, on_error, float(t0), float(constraint_tol))
+    return _statuses(traj, report, system, axes, on_guard, on_error, float(t0), float(constraint_tol), project)
 
 
-def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol):
+def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol, project):
     """Per-member statuses and reasons; raises BatchError as on_guard/on_error ask."""
-    finite, residuals, guards, margins = report
-    B = len(finite)
+    B = len(report["finite"])
     result = np.asarray(traj.result._value)
     status = np.full(B, OK, np.int8)
-    reasons = {}
-    # initial states (the first check that fails names the member's reason)
+    reasons = dict(member_failures(report, constraint_tol=tol, project=project))
     bad_x0 = np.zeros(B, bool)
-    checks = [(~np.asarray(finite, bool), lambda j: "x0 contains NaN or inf")]
-    for k, r in residuals.items():
-        r = np.asarray(r)
-        checks.append((~(r <= tol), lambda j, k=k, r=r: f"constraint '{k}' violated by {r[j]:.2e} (pass project=True)"))
-    for k, m in margins.items():
-        checks.append((~(np.asarray(m) > 0), lambda j, k=k: f"regularity condition '{k}' fails"))
-    for k, g in guards.items():
-        checks.append((~(np.asarray(g) > 0), lambda j, k=k: f"outside the chart ('{k}')"))
-    for mask, why in checks:
-        for j in np.nonzero(mask & ~bad_x0)[0]:
-            reasons[int(j)] = why(j)
-        bad_x0 |= mask
+    bad_x0[list(reasons)] = True
     status[bad_x0] = BAD_X0
     ev = int(diffrax.RESULTS.event_occurred._value)
     ok_code = int(diffrax.RESULTS.successful._value)
@@ -616,7 +613,7 @@ def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol):
     other = solved & (result != ok_code) & (result != ev) & ~maxed
     status[other] = SOLVER
     status[solved & ~fin & ((result == ok_code) | (result == ev))] = NONFINITE
-    guard_names = tuple(guards)
+    guard_names = tuple(report["guards"])
     used = set()
     x_end = jax.device_get(traj.x_end)
     for j in np.nonzero(stopped)[0]:
