@@ -28,6 +28,7 @@ from .errors import (  # noqa: E402
 from .integrate import (  # noqa: E402
     BatchError,
     DiscreteAdjoint,
+    ImpactTrajectory,
     RKMK4,
     RKMK45,
     PiecewiseConstant,
@@ -36,6 +37,7 @@ from .integrate import (  # noqa: E402
     Trajectory,
     simulate,
     simulate_batch,
+    simulate_impacts,
     stack,
 )
 
@@ -44,6 +46,7 @@ __all__ = [
     "DiscreteAdjoint",
     "ChartSingularityError",
     "ConstraintViolationError",
+    "ImpactTrajectory",
     "IntegrationError",
     "NhjaxError",
     "PiecewiseConstant",
@@ -58,6 +61,7 @@ __all__ = [
     "scenes",
     "simulate",
     "simulate_batch",
+    "simulate_impacts",
     "stack",
 ]
 __version__ = "0.1.0"

@@ -1,6 +1,7 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
 from .adjoint import DiscreteAdjoint
+from .impacts import ImpactTrajectory, simulate_impacts, solve_impacts
 from .batch import BatchError, simulate_batch, stack
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
@@ -9,6 +10,7 @@ from .simulate import Trajectory, simulate
 __all__ = [
     "BatchError",
     "DiscreteAdjoint",
+    "ImpactTrajectory",
     "LieODETerm",
     "PiecewiseConstant",
     "PiecewiseLinear",
@@ -18,5 +20,7 @@ __all__ = [
     "Trajectory",
     "simulate",
     "simulate_batch",
+    "simulate_impacts",
+    "solve_impacts",
     "stack",
 ]
