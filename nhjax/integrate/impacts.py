@@ -50,7 +50,8 @@ Rules (documented behaviour)
   found by the next steps.
 * Bound: at most ``max_impacts`` impacts (status "max_impacts"; the loop stops
   there, never hangs), at most ``max_steps`` loop iterations (steps and Newton
-  iterations together).
+  iterations together), and 500 iterations without progress in time (status
+  "stalled": impacts accumulating at a Zeno point below round-off).
 * The dense output used for sampling can miss a crossing that begins and ends
   between two samples; ``dtmax`` (default: the system's ``event_resolution``,
   e.g. a fraction of a vibrating wall's period) bounds the step so that samples
@@ -90,14 +91,17 @@ import numpy as np
 from ..errors import ConstraintViolationError, IntegrationError
 from ..mechanics.impacts import (
     _contact_kkt,
+    _impact_from_geometry,
     contact_kinematics,
-    impact_velocities,
+    impact_geometry,
     restitution_of,
 )
 
 __all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "solve_impacts"]
 
-STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite"}
+STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
+# loop iterations without progress in time after which the solve is declared stalled
+_STALL = 500
 
 
 class ImpactTrajectory(eqx.Module):
@@ -126,7 +130,8 @@ class ImpactTrajectory(eqx.Module):
     constraint_residual : max |A q' + a| at step ends (permanent constraints).
     contact_residual : max |psi|, |Psi| of persistent contacts at step ends.
     num_steps, num_accepted_steps, num_rejected_steps : loop iterations and steps.
-    status : 0 success, 1 max_impacts reached, 2 max_steps exhausted, 3 NaN/inf.
+    status : 0 success, 1 max_impacts reached, 2 max_steps exhausted, 3 NaN/inf,
+        4 stalled (no progress in time over 500 loop iterations: a Zeno point).
     """
 
     ts: jax.Array
@@ -298,7 +303,7 @@ def solve_impacts(
     carry = dict(
         t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
         persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
-        n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi,
+        n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
         imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
         imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
         imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
@@ -367,25 +372,26 @@ def solve_impacts(
         y_star = y1 + jax.lax.stop_gradient(x_dot) * corr
         x_star = y_star[:-1]
         q, qd = split(x_star)
-        _, _, Psi = contact_kinematics(system, t_star, q, qd)
+        geom = impact_geometry(system, t_star, q)
+        J, j = geom[3], geom[4]
+        Psi = J @ qd + j
         fire = c["evset"] & (e <= tolerances(persistent))
         fire = fire | (c["evset"] & (e == jnp.min(jnp.where(c["evset"], e, jnp.inf))))
         releasing = fire & persistent
         touching = fire & ~persistent
         hitting = touching & (Psi < 0)
         kept = persistent & ~releasing
-        qd1, mu, _ = impact_velocities(system, t_star, q, qd, hitting, alpha, keep=kept)
-        _, _, Psi1 = contact_kinematics(system, t_star, q, qd1)
-        slow = touching & (Psi1 <= rest_velocity)
-        qd2, mu2, _ = impact_velocities(system, t_star, q, qd, hitting, jnp.where(slow, 0.0, alpha),
-                                        keep=kept | slow)
-        qd_new = jnp.where(jnp.any(slow), qd2, qd1)
-        mu_new = jnp.where(jnp.any(slow), mu2, mu)
+        qd1, mu, _ = _impact_from_geometry(geom, qd, hitting, alpha, kept)
+        slow = touching & (J @ qd1 + j <= rest_velocity)
+        qd2, mu2, _ = _impact_from_geometry(geom, qd, hitting, jnp.where(slow, 0.0, alpha), kept | slow)
+        any_slow = jnp.any(slow)
+        qd_new = jnp.where(any_slow, qd2, qd1)
+        mu_new = jnp.where(any_slow, mu2, mu)
         cand = kept | slow
         _, _, mu_c, _ = kkt(t_star, jnp.concatenate([q, qd_new]), cand)
         new_persistent = kept | (slow & (mu_c > 0))
         x_plus = jnp.concatenate([q, qd_new])
-        _, _, Psi_post = contact_kinematics(system, t_star, q, qd_new)
+        Psi_post = J @ qd_new + j
         impact = jnp.any(hitting)
         E_pre, E_post = energy(x_star), energy(x_plus)
         row = jnp.where(impact, c["n_imp"], N)  # out of range: dropped
@@ -430,18 +436,61 @@ def solve_impacts(
         out["n_steps"] = c["n_steps"] + 1
 
         # ---------------------------------------------------------------- stepping
-        fr = jnp.arange(1, m + 1, dtype=dtype) / m
-        s = t + (t_end - t) * fr
-        xs_mid = jax.vmap(interp.evaluate)(s[:-1])[:, :-1]
-        xs_s = jnp.concatenate([xs_mid, y1[None, :-1]], axis=0)
-        e_s = jax.vmap(lambda tt, xx: events(tt, xx, persistent))(s, xs_s)  # (m, k)
-        below = e_s < -tolerances(persistent)[None, :]
+        fr = jnp.arange(0, m + 1, dtype=dtype) / m
+        s_all = t + (t_end - t) * fr  # samples, the step's start and end included
+
+        def gap_on_dense(tt):
+            return jnp.atleast_1d(system.unilateral_constraints(tt, interp.evaluate(tt)[:n]))
+
+        gaps, rates = jax.vmap(lambda tt: jax.jvp(gap_on_dense, (tt,), (jnp.ones((), dtype),)))(s_all)
+        s = s_all[1:]
+        xs_s = jnp.concatenate([jax.vmap(interp.evaluate)(s[:-1])[:, :-1], y1[None, :-1]], axis=0)
+        mus = jax.lax.cond(
+            jnp.any(persistent),
+            lambda _: jax.vmap(lambda tt, xx: kkt(tt, xx, persistent)[2])(s, xs_s),
+            lambda _: jnp.zeros((m, k), dtype), None)
+        e_s = jnp.where(persistent[None, :], mus, gaps[1:])  # (m, k) event values
+        tol = tolerances(persistent)
+        below = e_s < -tol[None, :]
         any_j = jnp.any(below, axis=1)
-        found = jnp.any(any_j)
+        crossed = jnp.any(any_j)
         j = jnp.argmax(any_j)
-        lo = jnp.where(j == 0, t, s[jnp.maximum(j - 1, 0)])
-        hi = s[j]
-        evset0 = below[j]
+        # a gap that dips below -graze_tol and comes back between two samples: its rate
+        # turns from < 0 to > 0 there; find that minimum (regula falsi on the rate)
+        free_ok = (~persistent)[None, :] & (gaps[:-1] >= -tol) & (gaps[1:] >= -tol)
+        dip = free_ok & (rates[:-1] < 0) & (rates[1:] > 0)  # (m, k) per interval
+        any_i = jnp.any(dip, axis=1)
+        has_dip = jnp.any(any_i) & (~crossed | (jnp.argmax(any_i) < j))
+        i_d = jnp.argmax(any_i)
+        a_d = jnp.argmax(dip[i_d])
+
+        def deepest(_):
+            def rate(tt):
+                return jax.jvp(lambda u: gap_on_dense(u)[a_d], (tt,), (jnp.ones((), dtype),))
+
+            def it(_, st):
+                lo_, hi_, rl, rh, side = st
+                tm = lo_ - rl * (hi_ - lo_) / (rh - rl)
+                tm = jnp.where(jnp.isfinite(tm) & (tm > lo_) & (tm < hi_), tm, 0.5 * (lo_ + hi_))
+                _, r = rate(tm)
+                left = r < 0  # minimum to the right of tm
+                # Illinois: halve the value kept twice on the same side
+                rh = jnp.where(left & (side == 1), 0.5 * rh, rh)
+                rl = jnp.where(~left & (side == -1), 0.5 * rl, rl)
+                return (jnp.where(left, tm, lo_), jnp.where(left, hi_, tm), jnp.where(left, r, rl),
+                        jnp.where(left, rh, r), jnp.where(left, 1, -1))
+
+            st = (s_all[i_d], s_all[i_d + 1], rates[i_d, a_d], rates[i_d + 1, a_d], 0)
+            lo_, hi_, _, _, _ = jax.lax.fori_loop(0, 24, it, st)
+            tm = 0.5 * (lo_ + hi_)
+            return tm, gap_on_dense(tm)
+
+        t_min, gaps_min = jax.lax.cond(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
+        dipped = has_dip & (gaps_min[a_d] < -tol[a_d])
+        found = crossed | dipped
+        lo = jnp.where(dipped, s_all[i_d], jnp.where(j == 0, t, s[jnp.maximum(j - 1, 0)]))
+        hi = jnp.where(dipped, t_min, s[j])
+        evset0 = jnp.where(dipped, (gaps_min < -tol) & ~persistent, below[j])
 
         def guess(_):
             """A first root estimate on the dense output (safeguarded Newton, from hi):
@@ -522,6 +571,11 @@ def solve_impacts(
 
         out = jax.lax.cond(locate, locating, stepping, out)
         out["status"] = jnp.where((out["status"] == 0) & ~jnp.all(jnp.isfinite(out["y"])), 3, out["status"])
+        # no progress in time for _STALL iterations (e.g. a Zeno point with rest_velocity = 0)
+        progressed = jax.lax.stop_gradient(out["t"]) > c["t_prog"] + 4 * _ulp(c["t_prog"])
+        out["t_prog"] = jnp.where(progressed, jax.lax.stop_gradient(out["t"]), c["t_prog"])
+        out["stall"] = jnp.where(progressed, 0, c["stall"] + 1)
+        out["status"] = jnp.where((out["status"] == 0) & (out["stall"] >= _STALL), 4, out["status"])
         return out
 
     def cond(c):
@@ -572,6 +626,8 @@ _STATUS_MSG = {
         "chattering ends in resting contact, or raise max_impacts, or pass on_max_impacts='stop')"),
     2: "max_steps={S} exhausted (raise max_steps, or loosen rtol/atol)",
     3: "the state became NaN/inf (check the model's domain and the contact geometry)",
+    4: ("the solve stalled: no progress in time over many iterations (a Zeno point: impacts "
+        "accumulating; raise rest_velocity so that chattering ends in resting contact)"),
 }
 
 
@@ -694,7 +750,7 @@ def simulate_impacts(
         rest_velocity=arr(rest_velocity), graze_tol=arr(graze_tol), release_tol=arr(release_tol),
         event_samples=int(event_samples),
     )
-    fatal = (2, 3) if on_max_impacts == "stop" else (1, 2, 3)
+    fatal = (2, 3, 4) if on_max_impacts == "stop" else (1, 2, 3, 4)
     if not _concrete(traj.status):
         bad = jnp.isin(traj.status, jnp.asarray(fatal))
         out = eqx.error_if((traj.x_final, traj.xs), bad, "nhjax.simulate_impacts: the solve failed "

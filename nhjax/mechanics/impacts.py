@@ -80,6 +80,7 @@ __all__ = [
     "affine_projector",
     "contact_dynamics",
     "contact_kinematics",
+    "impact_geometry",
     "impact_velocities",
     "restitution_of",
 ]
@@ -189,18 +190,17 @@ def _jump(M, A, a, J, j, qd, mask, alpha):
     return qd1, -nu
 
 
-def impact_velocities(system, t, q, qd, mask, alpha, keep=None):
-    """Post-impact velocities by the affine projector with restitution.
-
-    ``mask`` (k,) bool: contacts in the impact; ``alpha`` (k,): their restitution;
-    ``keep`` (k,) bool: contacts that are persistent (kept like permanent constraints:
-    in the impact with restitution 0). A contact whose impulse comes out negative
-    (pulling) is dropped and the jump recomputed, at most k times. Returns
-    ``(qd1, mu, used)``: velocities, impulses per contact (>= 0), contacts that took
-    part."""
+def impact_geometry(system, t, q):
+    """(M, A, a, J, j): everything an impact at (t, q) needs (mass matrix, permanent
+    constraints A q' + a = 0, contact Jacobian J and psi_t = j)."""
     M = system.mass_matrix(q)
     A, a = _permanent(system, t, q)
-    _, J, Psi0 = contact_kinematics(system, t, q, jnp.zeros_like(q))
+    _, J, j = contact_kinematics(system, t, q, jnp.zeros_like(q))
+    return M, A, a, J, j
+
+
+def _impact_from_geometry(geom, qd, mask, alpha, keep):
+    M, A, a, J, j = geom
     k = J.shape[0]
     mask = jnp.asarray(mask, bool)
     keep = jnp.zeros(k, bool) if keep is None else jnp.asarray(keep, bool)
@@ -208,7 +208,7 @@ def impact_velocities(system, t, q, qd, mask, alpha, keep=None):
     used = mask | keep
 
     def round_(_, used):
-        _, mu = _jump(M, A, a, J, Psi0, qd, used, alpha)
+        _, mu = _jump(M, A, a, J, j, qd, used, alpha)
         # drop the most negative (pulling) impulse, one per round
         worst = jnp.argmin(jnp.where(used, mu, jnp.inf))
         pulls = mu[worst] < -1e-14 * (1.0 + jnp.max(jnp.abs(mu)))
@@ -216,8 +216,20 @@ def impact_velocities(system, t, q, qd, mask, alpha, keep=None):
 
     if k > 1:
         used = jax.lax.fori_loop(0, k - 1, round_, used)
-    qd1, mu = _jump(M, A, a, J, Psi0, qd, used, alpha)
+    qd1, mu = _jump(M, A, a, J, j, qd, used, alpha)
     return qd1, mu, used
+
+
+def impact_velocities(system, t, q, qd, mask, alpha, keep=None):
+    """Post-impact velocities by the affine projector with restitution.
+
+    ``mask`` (k,) bool: contacts in the impact; ``alpha`` (k,): their restitution;
+    ``keep`` (k,) bool: contacts that are persistent (kept like permanent constraints:
+    in the impact with restitution 0). A contact whose impulse comes out negative
+    (pulling) is dropped and the jump recomputed, at most k - 1 times. Returns
+    ``(qd1, mu, used)``: velocities, impulses per contact (>= 0), contacts that took
+    part."""
+    return _impact_from_geometry(impact_geometry(system, t, q), qd, mask, alpha, keep)
 
 
 def contact_dynamics(system, t, q, qd, persistent, u=None):
