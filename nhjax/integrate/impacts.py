@@ -124,7 +124,8 @@ class ImpactTrajectory(eqx.Module):
     energy_error : E(t_final) - E(t0) - W - energy_jumps (0 up to integration error
         when T and V do not depend on time).
     persistent (k,) : contacts persistent at the end; rest_times (k,): last time
-        each became persistent (NaN: never); num_releases.
+        each became persistent (NaN: never); release_times (k,): last time each was
+        released (NaN: never); num_releases.
     min_gap (k,) : smallest psi of free contacts at the accepted steps' ends
         (penetration, if negative).
     constraint_residual : max |A q' + a| at step ends (permanent constraints).
@@ -153,6 +154,7 @@ class ImpactTrajectory(eqx.Module):
     energy_error: jax.Array
     persistent: jax.Array
     rest_times: jax.Array
+    release_times: jax.Array
     num_releases: jax.Array
     min_gap: jax.Array
     constraint_residual: jax.Array
@@ -309,6 +311,7 @@ def solve_impacts(
         imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
         imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
         E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
+        release_time=jnp.full((k,), nan),
         min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
         contact_res=jnp.zeros((), dtype),
         save_idx=zi, ys=jnp.full((ns, 2 * n + 1), nan),
@@ -409,6 +412,7 @@ def solve_impacts(
         out["n_imp"] = c["n_imp"] + impact.astype(jnp.int32)
         out["n_rel"] = c["n_rel"] + jnp.sum(releasing).astype(jnp.int32)
         out["rest_time"] = jnp.where(new_persistent & ~persistent, t_star, c["rest_time"])
+        out["release_time"] = jnp.where(persistent & ~new_persistent, t_star, c["release_time"])
         out["status"] = jnp.where(impact & (out["n_imp"] >= N), jnp.int32(1), c["status"])
         out["save_idx"], out["ys"] = save(c, t_end, interp)
         out["t"] = t_star
@@ -595,7 +599,8 @@ def solve_impacts(
         normal_velocity_pre=c["imp_Psi_pre"], normal_velocity_post=c["imp_Psi_post"],
         impulses=c["imp_mu"], energy_pre=c["imp_E_pre"], energy_post=c["imp_E_post"],
         energy_jumps=c["E_jumps"], energy_error=energy_error,
-        persistent=c["persistent"], rest_times=c["rest_time"], num_releases=c["n_rel"],
+        persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
+        num_releases=c["n_rel"],
         min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
         num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
         status=status, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
