@@ -271,29 +271,6 @@ def test_several_walls_crossed_within_one_step_are_found_in_order():
     assert float(jnp.min(tr.min_gap)) > -1e-12
 
 
-def test_wall_faster_than_the_ball_and_persistent_push():
-    """A wall x_w = V t + a t^2/2 behind a unit mass moving at u < V: it catches up at the
-    root t* of x0 + u t = V t + a t^2 / 2, the rebound is (1 + alpha) x_w'(t*) - alpha u;
-    plastic: the wall pushes the mass along (persistent contact, force a), and the energy
-    bookkeeping (wall's work, impact loss) closes."""
-    V, a, u, x0 = 2.0, 0.4, 0.5, 1.0
-    body = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd)
-    t_hit = (-(V - u) + np.sqrt((V - u) ** 2 + 2 * a * x0)) / a
-    wall = WithContacts(body, lambda t, q: q[0] - V * t - 0.5 * a * t**2)
-    for alpha in (1.0, 0.6, 0.0):
-        tr = nhjax.simulate_impacts(wall, jnp.array([x0, u]), 3.0, restitution=alpha, saveat=0)
-        np.testing.assert_allclose(float(tr.impact_times[0]), t_hit, rtol=1e-14)
-        w = V + a * t_hit
-        np.testing.assert_allclose(float(tr.velocities_post[0, 0]), (1 + alpha) * w - alpha * u, rtol=1e-13)
-        assert int(tr.num_impacts) == 1
-        assert abs(float(tr.energy_error)) < 1e-10
-    assert bool(tr.persistent[0])
-    np.testing.assert_allclose(tr.x_final, [V * 3.0 + 0.5 * a * 9.0, V + 3.0 * a], rtol=1e-12)
-    # the work of the wall = kinetic energy gained since the impact
-    W = float(tr.x_final[1]) ** 2 / 2 - float(tr.energy_post[0])
-    np.testing.assert_allclose(W, 0.5 * (V + 3 * a) ** 2 - 0.5 * w**2, rtol=1e-10)
-
-
 def test_bad_input_is_named():
     s = falling_ball(0.5)
     with pytest.raises(ConstraintViolationError, match="unilateral"):
