@@ -38,6 +38,7 @@ from .integrate import (  # noqa: E402
     simulate,
     simulate_batch,
     simulate_impacts,
+    simulate_impacts_batch,
     stack,
 )
 
@@ -62,6 +63,7 @@ __all__ = [
     "simulate",
     "simulate_batch",
     "simulate_impacts",
+    "simulate_impacts_batch",
     "stack",
 ]
 __version__ = "0.1.0"

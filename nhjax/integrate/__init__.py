@@ -1,7 +1,7 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
 from .adjoint import DiscreteAdjoint
-from .impacts import ImpactTrajectory, simulate_impacts, solve_impacts
+from .impacts import ImpactTrajectory, simulate_impacts, simulate_impacts_batch, solve_impacts
 from .batch import BatchError, simulate_batch, stack
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
@@ -21,6 +21,7 @@ __all__ = [
     "simulate",
     "simulate_batch",
     "simulate_impacts",
+    "simulate_impacts_batch",
     "solve_impacts",
     "stack",
 ]

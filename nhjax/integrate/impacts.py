@@ -97,7 +97,7 @@ from ..mechanics.impacts import (
     restitution_of,
 )
 
-__all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "solve_impacts"]
+__all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "simulate_impacts_batch", "solve_impacts"]
 
 STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
 # loop iterations without progress in time after which the solve is declared stalled
@@ -485,7 +485,7 @@ def solve_impacts(
                         jnp.where(left, rh, r), jnp.where(left, 1, -1))
 
             st = (s_all[i_d], s_all[i_d + 1], rates[i_d, a_d], rates[i_d + 1, a_d], 0)
-            lo_, hi_, _, _, _ = jax.lax.fori_loop(0, 24, it, st)
+            lo_, hi_, _, _, _ = jax.lax.fori_loop(0, 12, it, st)
             tm = 0.5 * (lo_ + hi_)
             return tm, gap_on_dense(tm)
 
@@ -511,7 +511,7 @@ def solve_impacts(
                 tn = jnp.where(jnp.isfinite(tn) & (tn >= a) & (tn <= b), tn, 0.5 * (a + b))
                 return tn, a, b
 
-            tau, _, _ = jax.lax.fori_loop(0, 8, it, (hi, lo, hi))
+            tau, _, _ = jax.lax.fori_loop(0, 6, it, (hi, lo, hi))
             return jax.lax.stop_gradient(tau)
 
         tau0 = jax.lax.cond(found & keep, guess, lambda _: hi, None)
@@ -766,3 +766,95 @@ def simulate_impacts(
         msg = _STATUS_MSG[status].format(N=max_impacts, S=max_steps)
         raise IntegrationError(msg, float(traj.t_final), trajectory=traj)
     return traj
+
+
+def _leading(tree, axes, lo, hi, B):
+    """Members lo..hi-1 (clipped to B - 1: a short last chunk repeats the last member)."""
+    idx = np.minimum(np.arange(lo, hi), B - 1)
+
+    def take(a, ax):
+        return a if ax is None else jnp.take(jnp.asarray(a), idx, axis=ax)
+
+    return jax.tree_util.tree_map(take, tree, axes, is_leaf=lambda a: a is None)
+
+
+@eqx.filter_jit
+def _batch_chunk(system, x0, t1, sys_axes, x_axis, options):
+    def member(s, x):
+        return solve_impacts(s, x, t1, **options)
+
+    return eqx.filter_vmap(member, in_axes=(sys_axes, x_axis))(system, x0)
+
+
+def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size: int = 256, workers=None,
+                           saveat=0, **options) -> ImpactTrajectory:
+    """Many impact solves at once: ``solve_impacts`` vmapped over chunks of members, the
+    chunks run concurrently on ``workers`` threads (default: one per CPU core; XLA
+    releases the GIL while a compiled chunk runs).
+
+    ``in_axes``: dict with keys "system" and "x0" (vmap axes: 0 for batched, None for
+    shared). For the system also a list of field names whose arrays carry the member
+    axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
+    to vary only the amplitude, or a pytree of axes.
+    Default: x0 batched if it is 2-D, the system shared. ``saveat``: 0 (nothing saved,
+    default) or an int / 1-D array of save times as in ``simulate_impacts``; other
+    keyword arguments are ``solve_impacts``'s. No exceptions: every member's ``status``
+    says how it ended. Returns an ``ImpactTrajectory`` whose fields have a leading
+    member axis.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    x0 = jnp.asarray(x0, float)
+    in_axes = dict(in_axes or {})
+    x_axis = in_axes.get("x0", 0 if x0.ndim == 2 else None)
+    sys_axes = in_axes.get("system", None)
+    if isinstance(sys_axes, (list, tuple)) and all(isinstance(nm, str) for nm in sys_axes):
+        names = tuple(sys_axes)
+        for nm in names:
+            if not hasattr(system, nm):
+                raise ValueError(f"in_axes['system'] names '{nm}', which {type(system).__name__} does not have")
+        sys_axes = jax.tree_util.tree_map(lambda _: None, system)
+        sys_axes = eqx.tree_at(lambda s: tuple(getattr(s, nm) for nm in names), sys_axes,
+                               tuple(0 for _ in names), is_leaf=lambda a: a is None)
+    elif sys_axes == 0:
+        sys_axes = jax.tree_util.tree_map(lambda a: 0 if eqx.is_array(a) else None, system)
+    elif sys_axes is None:
+        sys_axes = jax.tree_util.tree_map(lambda _: None, system)
+    sizes = set()
+    if x_axis is not None:
+        sizes.add(x0.shape[x_axis])
+    for a, ax in zip(jax.tree_util.tree_leaves(system), jax.tree_util.tree_leaves(sys_axes, is_leaf=lambda a: a is None)):
+        if ax is not None:
+            sizes.add(jnp.shape(a)[ax])
+    if len(sizes) != 1:
+        raise ValueError(f"batched inputs must share one batch size; got sizes {sorted(sizes)} "
+                         "(check in_axes: which of system / x0 carry a leading member axis)")
+    B = sizes.pop()
+    if isinstance(saveat, (int, np.integer)):
+        ts = None if saveat == 0 else jnp.linspace(options.get("t0", 0.0), t1, int(saveat))
+    else:
+        ts = jnp.asarray(saveat, float)
+    if "dtmax" not in options:
+        sys0 = jax.tree_util.tree_map(lambda a, ax: a if ax is None else jnp.take(a, 0, axis=ax),
+                                      system, sys_axes, is_leaf=lambda a: a is None)
+        options["dtmax"] = getattr(sys0, "event_resolution", None)
+    opts = {k: (jnp.asarray(v, float) if isinstance(v, float) else v) for k, v in options.items()}
+    opts["ts"] = ts
+    workers = int(workers or os.cpu_count() or 1)
+    chunk = int(min(chunk_size, max(1, -(-B // workers))))
+    starts = list(range(0, B, chunk))
+
+    def run(lo):
+        s = _leading(system, sys_axes, lo, lo + chunk, B)
+        x = x0 if x_axis is None else _leading(x0, x_axis, lo, lo + chunk, B)
+        return jax.block_until_ready(_batch_chunk(s, x, jnp.asarray(t1, float), sys_axes, x_axis, opts))
+
+    first = run(starts[0])  # compile once, then the rest concurrently
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        rest = list(pool.map(run, starts[1:]))
+    outs = [first] + rest
+    arrays, static = eqx.partition(outs[0], eqx.is_array)
+    merged = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a])[:B],
+                                    *[eqx.partition(o, eqx.is_array)[0] for o in outs])
+    return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)
