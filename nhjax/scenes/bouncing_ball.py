@@ -108,7 +108,7 @@ class BouncingBall(ConstrainedLagrangian):
     @property
     def event_resolution(self):
         """Largest step [s] for simulate_impacts: a quarter of the table's period."""
-        return float(2 * np.pi / self.omega / 4) if not isinstance(self.omega, jax.core.Tracer) else None
+        return 2 * np.pi / float(self.omega) / 4 if not isinstance(self.omega, jax.core.Tracer) else None
 
     def initial_state(self, height=0.1, velocity=0.0, t0=0.0):
         """State at t0 with the ball ``height`` [m] above the table's surface and
