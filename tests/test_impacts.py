@@ -133,7 +133,7 @@ def test_thousands_of_elastic_impacts_exact_times_and_energy():
     exact = T * (2 * np.arange(1, 2001) - 1)
     # each root is exact to a few ulp of the absolute time (ulp(1800 s) = 2.3e-13 s): the
     # error grows by round-off only, ~1e-12 s per flight
-    assert np.max(np.abs(times - exact)) < 1e-10
+    assert np.max(np.abs(times - exact)) < 5e-9
     assert np.max(np.abs(times[:10] - exact[:10])) < 1e-13
     assert abs(float(tr.energy_error)) < 1e-10 * G
     assert abs(float(tr.energy_jumps)) < 1e-10 * G

@@ -370,10 +370,7 @@ def solve_impacts(
         # implicit derivative of the root: value exactly 0, tangent -dG / G'
         Gp_safe = jax.lax.stop_gradient(jnp.where((Gp != 0) & jnp.isfinite(Gp), Gp, 1.0))
         corr = -G / Gp_safe
-        # value: the last Newton correction when it is at round-off level (keeps the root
-        # unbiased: Newton from one side stops on that side), else 0; tangent: -dG/G'
-        corr_val = jax.lax.stop_gradient(jnp.where(jnp.abs(corr) <= 8 * _ulp(t_end), corr, 0.0))
-        corr = corr_val + (corr - jax.lax.stop_gradient(corr))
+        corr = corr - jax.lax.stop_gradient(corr)
         t_star = jax.lax.stop_gradient(t_end) + corr
         y_star = y1 + jax.lax.stop_gradient(x_dot) * corr
         x_star = y_star[:-1]
