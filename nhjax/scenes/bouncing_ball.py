@@ -39,7 +39,7 @@ mu = m (g - A omega^2 sin(omega t)) crosses zero).
 
 Parameters: g [m/s^2] >= 0 (default 9.81), A [m] >= 0 (default 0.01),
 omega [rad/s] > 0 (default 2 pi 10), restitution alpha in [0, 1] (default 0.8),
-m [kg] > 0 (default 1). State x = (x, x'). ``event_resolution`` (an eighth
+m [kg] > 0 (default 1). State x = (x, x'). ``event_resolution`` (a quarter
 of the table's period) is the default largest step of ``simulate_impacts`` so
 that its dense-output samples resolve the table's motion.
 """
