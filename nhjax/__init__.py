@@ -40,6 +40,7 @@ from .integrate import (  # noqa: E402
     BatchError,
     BatchTrajectory,
     DiscreteAdjoint,
+    ImpactTrajectory,
     RKMK4,
     RKMK45,
     PiecewiseConstant,
@@ -48,6 +49,8 @@ from .integrate import (  # noqa: E402
     Trajectory,
     simulate,
     simulate_batch,
+    simulate_impacts,
+    simulate_impacts_batch,
     stack,
 )
 
@@ -59,6 +62,7 @@ __all__ = [
     "ConstraintViolationError",
     "ControlError",
     "GroupMembershipError",
+    "ImpactTrajectory",
     "IntegrationError",
     "NhjaxError",
     "ParameterError",
@@ -79,6 +83,8 @@ __all__ = [
     "scenes",
     "simulate",
     "simulate_batch",
+    "simulate_impacts",
+    "simulate_impacts_batch",
     "stack",
 ]
 __version__ = "0.1.0"

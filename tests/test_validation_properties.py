@@ -264,6 +264,11 @@ PROBES = {
     "controls.pmp_residual": lambda: controls.pmp_residual(_ocp(), lambda t, x: jnp.zeros(1), n_points=1),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
     "nhjax.simulate_batch": lambda: nhjax.simulate_batch(OSC, jnp.ones((4, 3)), 1.0),
+    "nhjax.simulate_impacts": lambda: nhjax.simulate_impacts(scenes.BouncingBall(), jnp.array([0.1, 0.0]), 1.0,
+                                                             max_impacts=0),
+    "nhjax.simulate_impacts_batch": lambda: nhjax.simulate_impacts_batch(
+        scenes.BouncingBall(), jnp.array([[0.1, 0.0]]), -1.0),
+    "nhjax.mechanics.WithContacts": lambda: mechanics.WithContacts(OSC, lambda t, q: q, restitution=1.5),
     # the parametrizations are checked where they meet a problem (solve_direct/_newton)
     **{f"controls.{n}": (lambda n=n: controls.solve_direct(_ocp(), getattr(controls, n)(3, 0.5, 1)))
        for n in ("Chebyshev", "CubicSpline", "Fourier", "PiecewiseConstant", "PiecewiseLinear")},
@@ -274,6 +279,10 @@ EXEMPT = {
     "nhjax.lie": "module", "nhjax.mechanics": "module", "nhjax.scenes": "module",
     "nhjax.Trajectory": "result container returned by simulate",
     "nhjax.BatchTrajectory": "result container returned by simulate_batch",
+    "nhjax.ImpactTrajectory": "result container returned by simulate_impacts",
+    "nhjax.mechanics.affine_projector": "pure function of arrays (the seed's jump map; runs traced)",
+    "nhjax.mechanics.contact_dynamics": "pure function of arrays (runs traced inside a solve)",
+    "nhjax.mechanics.impact_velocities": "pure function of arrays (the seed's jump map; runs traced)",
     "nhjax.DiscreteAdjoint": "solver configuration, its use checked by simulate (_configure)",
     "nhjax.RKMK4": "solver configuration, its use checked by simulate (_configure)",
     "nhjax.RKMK45": "solver configuration, its use checked by simulate (_configure)",

@@ -38,18 +38,16 @@ differentiated input numbers:
   dPhi/dp for a chunk of steps in one vectorised call, and run the recursion as
   n x n matrix-vector products.
 
-Measured on the falling cat (n = 5, 119 steps at rtol 1e-10; benchmarks/
-batch_throughput.py, five runs): a forward solve 0.048-0.076 ms; D = 2:
-tangents 2.3-3.5x it, per-step VJPs 4.5-13x, chunked forward Jacobians
-11-20x, RecursiveCheckpointAdjoint 127-286x; D = 7 (a script): tangents 7-8x,
-VJPs 6-7x. These figures assume XLA compiles small while loops as one
-function (nhjax/_xla_flags.py); kernel by kernel, a step's VJP was ~300
-kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
+Which is cheaper depends on D and on the system: the tangents cost about D
+forward solves' worth of JVPs and need no recording, the VJP sweep costs a
+recording forward pass and one VJP per step whatever D is, so "auto" takes the
+tangents for few differentiated numbers (``benchmarks/batch_throughput.py``
+reports the ratios to a forward solve for every mode).
 
 Cost and memory: except in "tangents" mode the forward pass records every
 accepted step (``max_steps`` x state size floats per solve, only when
-differentiated: a forward-only call records nothing); on the cat the recording
-forward pass takes 0.14-0.27 ms against 0.05 ms for a plain one.
+differentiated: a forward-only call records nothing), which makes that pass
+several times dearer than a plain forward solve on small systems.
 
 Limits (checked or documented):
 
@@ -102,10 +100,8 @@ class DiscreteAdjoint(eqx.Module):
         dPhi/dy (n x n) and dPhi/dp (n x D) for a chunk of steps at a time by
         forward / reverse mode, and run the recursion as matrix-vector products.
         "auto": "tangents" while D <= ``max_tangents`` and the step has
-        forward-mode rules, else "vjp". Measured on the falling cat (n = 5, rtol
-        1e-10, benchmarks/batch_throughput.py, five runs): D = 2 tangents 2.3-3.5x
-        a forward solve, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x;
-        D = 7 (a script timing the initial state too) tangents 7-8x, VJPs 6-7x.
+        forward-mode rules, else "vjp" (``benchmarks/batch_throughput.py`` times
+        every mode against a forward solve).
     max_tangents : the largest D for which "auto" picks "tangents".
     chunk : steps whose Jacobians are evaluated together in one vectorised call
         ("forward"/"reverse"; memory: chunk x n x (n + D) floats).

@@ -246,10 +246,10 @@ def _default_lanes(capacity: int) -> int:
     max(total steps / lanes, steps of its longest member) x (cost of one step of all
     lanes), and a step's cost per lane falls with the lanes (vectorization) down to
     about 32 lanes. An eighth of the members keeps the first term near the second for
-    step counts that differ many-fold (measured on the cat: 512 members, 64 lanes took
-    half the CPU time of 512 or 16 lanes). Up to 128 members, one lane: a loop over one
-    member's numbers is small enough for XLA to compile into one function
-    (nhjax/_xla_flags.py), which beats narrow vectors (4-16 lanes)."""
+    step counts that differ many-fold (chosen by timing lane counts on the cat's
+    unequal batch of benchmarks/batch_throughput.py). Up to 128 members, one lane: a
+    loop over one member's numbers is small enough for XLA to compile into one
+    function (nhjax/_xla_flags.py), which beats narrow vectors (4-16 lanes)."""
     if capacity <= 128:
         return 1
     return int(min(_MAX_LANES, max(32, _pow2ceil(capacity // 8))))

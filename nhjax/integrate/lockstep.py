@@ -1,34 +1,36 @@
 """Lock-step batch integrator: many solves of one problem, stepped together, batch axis last.
 
-``simulate_batch`` used to ``vmap`` ``diffrax.diffeqsolve``. On the CPU that costs
-about 0.7 us per member per step on the falling cat (4096 members, one thread),
-no better than a scalar compiled loop, for three reasons found by profiling
-(perf + XLA's optimized HLO, benchmarks/batch_throughput.py case):
+Why not ``vmap`` of ``diffrax.diffeqsolve``: on the CPU it is no faster per
+member-step than a scalar compiled loop, for four reasons (found by profiling:
+perf, XLA's optimized HLO, per-kernel traces with jax.profiler):
 
 1. the batch axis leads (``[B, n]``), so each vector-field fusion builds its
    ``[B, n]`` output by a concatenate along the short minor axis: XLA's loop
    emitter evaluates it element by element, recomputes shared subexpressions
    for each of the n components and does not vectorize;
-2. float64 ``sin``/``cos`` are scalar C-library calls per element (40 % of the
-   time), see ``fast_trig``;
-3. the vmapped while loop carries and selects ~60 buffers per step (diffrax's
-   whole loop state: saving, events, progress meter, dense-output bookkeeping).
-
-Per kernel (jax.profiler trace of the cat chunk, 1024 members, after the changes
-below): the six right-hand-side fusions take about half of the loop, the error
-norm 6 %, the rest is selects and bookkeeping; a guard's dense output is
-recomputed after the loop instead of being stored every step (that store was
-13 %), and batch.py compiles the chunks without YNNPACK fusions (the per-member
-error norm had become a YNNPACK dot, 10-25 %).
+2. float64 ``sin``/``cos`` are scalar C-library calls per element, see
+   ``fast_trig``;
+3. the vmapped while loop carries and selects diffrax's whole loop state
+   (saving, events, progress meter, dense-output bookkeeping) every step;
+4. a vmapped loop runs until its slowest member ends: members that need a tenth
+   of its steps idle for the rest.
 
 Here the loop is ours and holds only what a step needs; every array keeps the
-batch axis last (``[n, B]``: each state component is a contiguous ``[B]``
-vector, so the stage arithmetic fuses and vectorizes); the pieces of a step are
-diffrax's own, vmapped over the members: ``solver.step``,
+member axis last (``[n, L]``: each state component is a contiguous vector over
+the L lanes, so the stage arithmetic fuses and vectorizes); the pieces of a
+step are diffrax's own, vmapped over the lanes: ``solver.step``,
 ``controller.init``/``adapt_step_size``, the solver's dense interpolation, the
 event's root find. So each member takes exactly the steps a single
 ``simulate()`` takes, and saves, stops at guards and fails the same way
 (``tests/test_batch.py`` compares them member by member).
+
+Lanes and the queue: the chunk's members wait in a queue; L lanes step
+together; a member that ends (t1 reached, guard, failure, step budget) writes
+its results into its own slot, and once R = L/16 lanes are idle they take the
+next members (their initial step, controller and FSAL state computed then).
+The stepping loop carries only the lanes, so it stays small; a guard's dense
+output is recomputed after the loop for the members that stopped, instead of
+being stored every step.
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
 (the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
