@@ -24,13 +24,16 @@ event's root find. So each member takes exactly the steps a single
 ``simulate()`` takes, and saves, stops at guards and fails the same way
 (``tests/test_batch.py`` compares them member by member).
 
-Lanes and the queue: the chunk's members wait in a queue; L lanes step
-together; a member that ends (t1 reached, guard, failure, step budget) writes
-its results into its own slot, and once R = L/16 lanes are idle they take the
-next members (their initial step, controller and FSAL state computed then).
-The stepping loop carries only the lanes, so it stays small; a guard's dense
-output is recomputed after the loop for the members that stopped, instead of
-being stored every step.
+Lanes and the queue: every member's start (initial step, controller and FSAL
+state: diffeqsolve's initialisation) is computed for the whole chunk at once;
+the members wait in a queue, those with the smallest first step first (they
+tend to need the most steps, and a long member started late would leave the
+other lanes idle at the end); L lanes step together; a member that ends (t1
+reached, guard, failure, step budget) stays in its lane until R = L/16 lanes
+are idle, then every idle lane writes its member's results into the member's
+own slot and takes the next member of the queue. The stepping loop carries only
+the lanes, so it stays small; a guard's dense output is recomputed after the
+loop for the members that stopped, instead of being stored every step.
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
 (the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
@@ -148,7 +151,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     with ``fast_trig=False``)."""
     M = jtu.tree_leaves(problem.t1)[0].shape[-1]
     L = M if lanes is None else max(1, min(int(lanes), M))
-    R = max(1, L // 16)  # lanes refilled at once (a refill computes the initial steps of R members)
+    R = max(1, L // 16)  # idle lanes that trigger a refill (which fills every idle lane)
     solver, term, event, sub = problem.solver, problem.term, problem.event, problem.sub
     ends_only = sub.ts is None
     successful = diffrax.RESULTS.successful._value
@@ -157,12 +160,9 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     args_axes = tuple(args_axes)
     member = jnp.arange(M)
 
-    # The queue: members to solve, in order (skipped members and padding beyond
-    # n_members at the back); n_run of them are solved.
     not_run = member >= (M if n_members is None else n_members)
     if skip is not None:
         not_run = not_run | skip
-    order = jnp.argsort(not_run, stable=True).astype(jnp.int32)
     n_run = jnp.sum(~not_run).astype(jnp.int32)
 
     def vm(f, pr, a, *per_member):
@@ -245,11 +245,19 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         out.update(ev_mask=jnp.zeros(M, bool), ev_tprev=t0_m, ev_tnext=t0_m, ev_y=y0,
                    ev_made_jump=jnp.zeros(M, bool))
 
+    # Every member's start, computed once for the chunk (vectorized); lanes gather it.
+    starts = vm(init, problem, args, y0)
+    # The queue: members to solve (skipped members and padding beyond n_members at the
+    # back), those with the smallest first step first: they tend to need the most steps,
+    # and a long member started early does not leave the lanes idle at the end.
+    h0 = starts[0] - problem.t0
+    order = jnp.lexsort((jnp.where(jnp.isnan(h0), jnp.inf, h0), not_run)).astype(jnp.int32)
+
     # Lanes: a member index (M: empty), that member's problem and args, its solver state.
     def start_values(new):
         """Lane values of members ``new`` ``[K]`` at their start (diffeqsolve's initialisation)."""
         pr, a, y = _take(pr_arr, new), _take(args_arr, new), _take(y0, new)
-        tnext, cstate, sstate, floor, ev = vm(init, problem_of(pr), args_of(a), y)
+        tnext, cstate, sstate, floor, ev = _take(starts, new)
         t0 = problem_of(pr).t0 + 0.0 * tnext
         f, zi = jnp.zeros(new.shape, bool), jnp.zeros(new.shape, jnp.int32)
         vals = dict(mem=new, pr=pr, a=a, y=y, tprev=t0, tnext=tnext, sstate=sstate, cstate=cstate,
@@ -297,15 +305,15 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         return dict(c, mem=c["mem"].at[jnp.where(has, li, L)].set(M, mode="drop")), out
 
     def refill(state):
-        """Retire up to R idle lanes and start the next members of the queue in them."""
+        """Retire the idle lanes and start the next members of the queue in them."""
         c, out = state
         idle = ~active_of(c)
-        sel = jnp.nonzero(idle, size=R, fill_value=L)[0]
+        sel = jnp.nonzero(idle, size=L, fill_value=L)[0]
         c, out = retire(c, out, sel)
-        q = c["next"] + jnp.arange(R)
+        q = c["next"] + lane
         valid = (sel < L) & (q < n_run)
         vals = start_values(order[jnp.minimum(q, M - 1)])
-        dest = jnp.where(valid, sel, L + jnp.arange(R))
+        dest = jnp.where(valid, sel, L + lane)
         c = dict(c)
         c.update(_put({k: c[k] for k in vals}, dest, vals))
         c["next"] = c["next"] + jnp.sum(valid).astype(jnp.int32)
@@ -401,7 +409,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         c, out, bad = state
         c, bad = jax.lax.while_loop(lambda lc: jnp.any(active_of(lc[0])) & ~want_refill(lc[0]) & ~lc[1],
                                     steps, (c, bad))
-        c, out = jax.lax.while_loop(lambda st: want_refill(st[0]), refill, (c, out))
+        c, out = jax.lax.cond(want_refill(c), refill, lambda st: st, (c, out))
         return c, out, bad
 
     def queue_left(state):
