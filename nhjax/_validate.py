@@ -53,7 +53,7 @@ from .errors import (
     StateError,
     TimeSpanError,
 )
-from .lie.spaces import Euclidean, SE2Body, SO3Body, SO3Spatial, UnitQuaternionBody, is_space
+from .lie.spaces import SE2Body, SO3Body, SO3Spatial, UnitQuaternionBody, is_space
 
 #: Largest |R^T R - I|, ||q| - 1| or SE(2) block error accepted in a group-valued part
 #: of a state given to a constructor helper (simulate() uses its ``constraint_tol``).

@@ -49,12 +49,14 @@ import numpy as np
 
 from .._validate import (
     check_control,
+    check_memory,
     check_saveat,
     check_state,
     choice,
     integer,
     member_failures,
     member_report,
+    save_times_count,
     solver_settings,
     time_span,
 )
@@ -124,17 +126,6 @@ def _take(tree, ax, sl):
     if ax is None:
         return tree
     return jtu.tree_map(lambda a: a[sl] if hasattr(a, "shape") and a.ndim else a, tree)
-
-
-def _available_memory_bytes():
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
 #: Traces of the chunk programs (tests count them: a batch with new values of the same
@@ -478,18 +469,12 @@ def simulate_batch(
         project_steps=project_steps, track_work=track_work, progress=False, diagnostics=diagnostics,
     )
     t0a, t1a, tol = jnp.asarray(t0, float), jnp.asarray(t1, float), jnp.asarray(constraint_tol, float)
-    # Memory: the saved states of the whole batch must fit.
-    n_save = saveat if isinstance(saveat, (int, np.integer)) else len(np.asarray(saveat))
+    # Memory: the saved states of the whole batch must fit (ResourceError, a MemoryError).
+    n_save = save_times_count(saveat)
     state_bytes = sum(np.asarray(a).size for a in jtu.tree_leaves(ex_x0)) * 8
-    need = B * n_save * state_bytes * 3  # states, plus invariants/us/work headroom
-    avail = _available_memory_bytes()
-    if need > 0.8 * avail:
-        raise MemoryError(
-            f"the batch would keep about {need / 2**30:.1f} GiB of saved states "
-            f"({B} members x {n_save} saved times x {state_bytes} bytes), more than the "
-            f"{avail / 2**30:.1f} GiB available: save fewer times (saveat=2 keeps t0 and t1) "
-            "or split the batch"
-        )
+    check_memory(B * n_save * state_bytes * 3,  # states, plus invariants/us/work headroom
+                 f"keeping the saved states ({B} members x {n_save} saved times x {state_bytes} bytes)",
+                 "save fewer times (saveat=2 keeps t0 and t1) or split the batch", owner=owner)
 
     devices = jax.local_devices()
     if workers is None:

@@ -80,7 +80,6 @@ any system whose T and V do not depend on time.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import diffrax
 import equinox as eqx

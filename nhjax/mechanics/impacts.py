@@ -72,6 +72,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .._validate import function, in_range
 from ..errors import ParameterError
@@ -316,3 +317,14 @@ class WithContacts(ConstrainedLagrangian):
 
     def invariants(self, x):
         return self.system.invariants(x)
+
+
+def oscillation_resolution(amplitude, omega):
+    """Largest step [s] for a wall oscillating as amplitude * sin(omega t): an eighth of
+    its period, so that no impact slips between steps (None if it does not oscillate,
+    or if the values are traced)."""
+    if isinstance(omega, jax.core.Tracer) or isinstance(amplitude, jax.core.Tracer):
+        return None
+    if float(amplitude) == 0 or float(omega) == 0:
+        return None
+    return float(2 * np.pi / abs(float(omega)) / 8)

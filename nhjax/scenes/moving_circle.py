@@ -45,9 +45,9 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
+from ..mechanics.impacts import oscillation_resolution
 from ._validate import in_range, positive, real
 
 __all__ = ["ParticleInMovingCircle"]
@@ -95,11 +95,7 @@ class ParticleInMovingCircle(ConstrainedLagrangian):
     @property
     def event_resolution(self):
         """Largest step [s]: an eighth of the wall's oscillation period (None if it does not oscillate)."""
-        if isinstance(self.Omega, jax.core.Tracer) or isinstance(self.B, jax.core.Tracer):
-            return None
-        if float(self.B) == 0 or float(self.Omega) == 0:
-            return None
-        return float(2 * np.pi / abs(float(self.Omega)) / 8)
+        return oscillation_resolution(self.B, self.Omega)
 
     def initial_state(self, x=0.0, y=0.0, vx=1.0, vy=0.0):
         """Position (x, y) [m] inside the wall and velocity (vx, vy) [m/s]."""

@@ -189,6 +189,19 @@ def _pi(gamma, a):
 
 
 # ---------------------------------------------------------------- reduced model
+
+def _shell_and_top(owner, ms, Rs, Is, mt, It, c, g):
+    """The shell's and the top's parameters, checked (shared by the models here)."""
+    ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
+    Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
+    Is = V.positive("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, owner=owner,
+                    what="central moment of inertia of the shell [kg m^2]")
+    mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
+    It = V.inertia_tensor("It", It, owner=owner)
+    c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
+    g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+    return ms, Rs, Is, mt, It, c, g
+
 class ShellWithTopReduced(AbstractSystem):
     """Spherical shell with a top on a spherical hinge: reduced system (1.11) with
     reconstruction (1.5), (1.8), (1.12). See the module docstring.
@@ -229,14 +242,8 @@ class ShellWithTopReduced(AbstractSystem):
         case="auto",
     ):
         owner = "ShellWithTopReduced"
-        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
-        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
-        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
-                             what="central moment of inertia of the shell [kg m^2]")
-        self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
-        self.It = V.inertia_tensor("It", It, owner=owner)
-        self.c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
-        self.g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.ms, self.Rs, self.Is, self.mt, self.It, self.c, self.g = _shell_and_top(
+            owner, ms, Rs, Is, mt, It, c, g)
         V.choice("case", case, ("auto", "general", "euler", "lagrange"), owner=owner)
         if case == "auto":
             case = self._detect_case()
@@ -515,14 +522,8 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
     def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=0.5, It=(2e-3, 3e-3, 4e-3), c=(0.01, 0.0, -0.06), g=9.81,
                  chart_eps=0.1):
         owner = "ShellWithTopLagrangian"
-        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
-        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
-        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
-                             what="central moment of inertia of the shell [kg m^2]")
-        self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
-        self.It = V.inertia_tensor("It", It, owner=owner)
-        self.c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
-        self.g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.ms, self.Rs, self.Is, self.mt, self.It, self.c, self.g = _shell_and_top(
+            owner, ms, Rs, Is, mt, It, c, g)
         self.n = 8
         self.chart_eps = float(V.in_range("chart_eps", chart_eps, 0.0, 2 * np.pi, hi_closed=False, owner=owner, as_float=True,
                                           shape=(), what="margin of the rotation-vector guards [rad], 0: no guard"))

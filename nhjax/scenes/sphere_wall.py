@@ -66,6 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
+from ..mechanics.impacts import oscillation_resolution
 from ._validate import in_range, positive, real
 
 __all__ = ["RollingSphereWall"]
@@ -130,11 +131,7 @@ class RollingSphereWall(ConstrainedLagrangian):
 
     @property
     def event_resolution(self):
-        if isinstance(self.Omega, jax.core.Tracer) or isinstance(self.B, jax.core.Tracer):
-            return None
-        if float(self.B) == 0 or float(self.Omega) == 0:
-            return None
-        return float(2 * np.pi / abs(float(self.Omega)) / 8)
+        return oscillation_resolution(self.B, self.Omega)
 
     def angular_velocity(self, q, qd):
         th, ps = q[3], q[5]
