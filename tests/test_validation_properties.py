@@ -264,6 +264,9 @@ PROBES = {
     "controls.pmp_residual": lambda: controls.pmp_residual(_ocp(), lambda t, x: jnp.zeros(1), n_points=1),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
     "nhjax.simulate_batch": lambda: nhjax.simulate_batch(OSC, jnp.ones((4, 3)), 1.0),
+    "nhjax.PiecewiseConstant": lambda: nhjax.PiecewiseConstant([0.0, 1.0], [[1.0], [2.0]]),
+    "nhjax.PiecewiseLinear": lambda: nhjax.PiecewiseLinear([0.0, 1.0], [[np.nan], [1.0]]),
+    "nhjax.Sinusoids": lambda: nhjax.Sinusoids([0.0, 1.0], [1.0], [2.0, 3.0]),
     "nhjax.simulate_impacts": lambda: nhjax.simulate_impacts(scenes.BouncingBall(), jnp.array([0.1, 0.0]), 1.0,
                                                              max_impacts=0),
     "nhjax.simulate_impacts_batch": lambda: nhjax.simulate_impacts_batch(
@@ -292,13 +295,8 @@ EXEMPT = {
     "controls.DirectResult": "result container", "controls.IndirectResult": "result container",
     "controls.HamiltonianSystem": "built by solve_pontryagin from a checked OCP",
 }
-# Public names checked with plain ValueError (signals.py): they raise ValueError today;
-# simulate() checks the control's value at t0.
-PLAIN_VALUEERROR = {
-    "nhjax.PiecewiseConstant": lambda: nhjax.PiecewiseConstant([0.0, 1.0], [[1.0], [2.0]]),
-    "nhjax.PiecewiseLinear": lambda: nhjax.PiecewiseLinear([0.0, 1.0], [[1.0]]),
-    "nhjax.Sinusoids": lambda: nhjax.Sinusoids([0.0, 1.0], [1.0], [2.0, 3.0]),
-}
+# Public names checked with plain ValueError: none left (the signals use the layer too).
+PLAIN_VALUEERROR = {}
 
 
 def _public_names():

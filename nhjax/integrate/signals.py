@@ -12,6 +12,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from .._validate import real
+from ..errors import ParameterError
 
 __all__ = ["PiecewiseConstant", "PiecewiseLinear", "Sinusoids"]
 
@@ -28,30 +32,37 @@ class Sinusoids(eqx.Module):
     phase: jax.Array
 
     def __init__(self, offset, amplitude, omega, phase=None):
-        self.offset = jnp.atleast_1d(jnp.asarray(offset, float))
-        self.amplitude = jnp.atleast_1d(jnp.asarray(amplitude, float))
-        self.omega = jnp.atleast_1d(jnp.asarray(omega, float))
-        self.phase = (
-            jnp.zeros_like(self.omega) if phase is None else jnp.atleast_1d(jnp.asarray(phase, float))
-        )
+        owner = "Sinusoids"
+        self.offset = jnp.atleast_1d(real("offset", offset, owner=owner, what="input units"))
+        self.amplitude = jnp.atleast_1d(real("amplitude", amplitude, owner=owner, what="input units"))
+        self.omega = jnp.atleast_1d(real("omega", omega, owner=owner, what="angular frequency [rad/s]"))
+        self.phase = (jnp.zeros_like(self.omega) if phase is None
+                      else jnp.atleast_1d(real("phase", phase, owner=owner, what="[rad]")))
         shapes = {a.shape for a in (self.offset, self.amplitude, self.omega, self.phase)}
         if len(shapes) != 1:
-            raise ValueError(f"Sinusoids parameters must share one shape (k,), got {shapes}")
+            raise ParameterError(
+                "Sinusoids: offset, amplitude, omega and phase must share one shape (k,) for k inputs, "
+                f"got shapes {sorted(shapes)}", "amplitude", amplitude)
 
     def __call__(self, t, x=None):
         return self.offset + self.amplitude * jnp.sin(self.omega * t + self.phase)
 
 
-def _check_knots(ts, values):
-    ts = jnp.asarray(ts, float)
-    values = jnp.asarray(values, float)
+def _check_knots(ts, values, owner, rows_per_knot=0):
+    """Knot times (finite, increasing) and values (finite, one row per knot, or per
+    interval with rows_per_knot=-1), as float arrays; tracers pass unchecked."""
+    ts = jnp.atleast_1d(real("ts", ts, owner=owner, what="knot times [s]"))
+    values = real("values", values, owner=owner, what="input values at the knots")
     if values.ndim == 1:
         values = values[:, None]
-    if ts.ndim != 1 or values.shape[0] != ts.shape[0]:
-        raise ValueError(
-            f"knot times (shape {ts.shape}) and values (shape {values.shape}) must agree "
-            "on the first axis"
-        )
+    need = ts.shape[0] + rows_per_knot
+    if ts.ndim != 1 or values.ndim != 2 or values.shape[0] != need:
+        rows = "one value row per knot time" if rows_per_knot == 0 else "one value row per interval (n - 1 rows for n times)"
+        raise ParameterError(
+            f"{owner}: values must have {rows}: knot times of shape {tuple(ts.shape)} and values of shape "
+            f"{tuple(values.shape)} do not agree", "values", values)
+    if not isinstance(ts, jax.core.Tracer) and np.any(np.diff(np.asarray(ts)) <= 0):
+        raise ParameterError(f"{owner}: knot times ts must increase strictly, got {np.asarray(ts)}", "ts", ts)
     return ts, values
 
 
@@ -62,7 +73,7 @@ class PiecewiseLinear(eqx.Module):
     values: jax.Array
 
     def __init__(self, ts, values):
-        self.ts, self.values = _check_knots(ts, values)
+        self.ts, self.values = _check_knots(ts, values, "PiecewiseLinear")
 
     @property
     def breakpoints(self):
@@ -79,13 +90,7 @@ class PiecewiseConstant(eqx.Module):
     values: jax.Array
 
     def __init__(self, ts, values):
-        ts = jnp.asarray(ts, float)
-        values = jnp.asarray(values, float)
-        if values.ndim == 1:
-            values = values[:, None]
-        if values.shape[0] != ts.shape[0] - 1:
-            raise ValueError("PiecewiseConstant needs one value row per interval (n-1 rows for n times)")
-        self.ts, self.values = ts, values
+        self.ts, self.values = _check_knots(ts, values, "PiecewiseConstant", rows_per_knot=-1)
 
     @property
     def breakpoints(self):
