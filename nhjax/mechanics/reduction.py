@@ -79,7 +79,12 @@ det I_c / (tr I_c / 3)^3 (about the axis: n.I_c n / (tr I_c / 2)) of the
 rotational inertia about the centre of mass, minus ``guard_eps``: it is 1 for a
 spherical inertia and 0 on the degenerate set, and simulate() stops there
 (``ChartSingularityError``) instead of integrating a connection that blows up.
-Shape charts with their own singularities add guards through ``chart_guard``.
+The determinant is even in the distance from the degenerate set: it touches zero
+there, so a path that crosses straight through it can be stepped over (the guard
+is checked at step ends); it stops paths that approach or end near it. Where a
+shape chart lets paths cross the degenerate set, a ``chart_guard`` that changes
+sign there catches the crossing (``ThreeBodyCat``'s ``collinear``). Shape charts
+with their own singularities add guards the same way.
 """
 
 from __future__ import annotations
@@ -429,7 +434,7 @@ class ReducedSystem(AbstractSystem):
 
     large_vector_field: ClassVar[bool] = True
     regularity_hints: ClassVar[dict] = _REG_HINTS
-    guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT}
+    guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT, "collinear": _LOCKED_HINT}
 
     def __init__(self, bodies, shape_map, group, shape_dim, *, momentum=None, inputs=None,
                  control_dim=None, shape_names=None, chart_guard=None, guard_eps=1e-6):
@@ -929,11 +934,9 @@ class ReducedKinematic(ReducedSystem):
     def free_invariants(self, x):
         return {}
 
-    def energy(self, x):
-        return None
-
-    def power(self, t, x, u):
-        return None
+    # no kinetic energy or power of inputs to track (the inputs are velocities)
+    energy = AbstractSystem.energy
+    power = AbstractSystem.power
 
     def regularity(self, t, x):
         r = self.split(x)[2]
@@ -971,5 +974,9 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
 
     S, Aa = np.meshgrid(s_nodes, a_nodes, indexing="ij")
     W = np.outer(s_w, a_w)
-    vals = jax.vmap(integrand)(jnp.asarray(S.ravel()), jnp.asarray(Aa.ravel()))
-    return jnp.einsum("n,na->a", jnp.asarray(W.ravel()), vals)
+    return _integrate(system, integrand, jnp.asarray(S.ravel()), jnp.asarray(Aa.ravel()), jnp.asarray(W.ravel()))
+
+
+@eqx.filter_jit
+def _integrate(system, integrand, s, a, w):
+    return jnp.einsum("n,na->a", w, jax.vmap(integrand)(s, a))

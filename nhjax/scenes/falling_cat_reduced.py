@@ -22,13 +22,16 @@ Chart: sin(theta) > ``chart_eps`` (guard ``sin_theta``, as ``FallingCat``).
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..lie import so3
-from ..mechanics.reduction import SO2, Bodies, ReducedSystem
+from ..mechanics.reduction import _LOCKED_HINT, SO2, Bodies, ReducedSystem
+from .falling_cat import _CHART_HINT
 
 __all__ = ["FallingCatReduced"]
 
@@ -57,6 +60,8 @@ class CatChart(eqx.Module):
 
 class FallingCatReduced(ReducedSystem):
     """The cat as a ``ReducedSystem``: two rigid cylinders, SO(2) about e2, zero momentum."""
+
+    guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT, "locked_inertia": _LOCKED_HINT}
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
                  chart_eps=1e-3, momentum="zero"):

@@ -35,21 +35,25 @@ e1-e2 plane, |r|^2 = (|w| + w1)/2. In the plane the reduced metric is exactly
 Units: masses [kg], positions [m], shape coordinates as the shape map defines
 them (w: kg m^2), torques dual to the shape coordinates.
 Chart: the Jacobi section is singular where r = 0 (particles 1 and 2 coincide):
-guard ``jacobi_chart`` = |r|^2/|w| - eps. In space, collinear triangles (w3 -> 0)
-are where SO(3) stops acting freely: guard ``locked_inertia`` (of every
-``ReducedSystem`` in space).
+guard ``jacobi_chart`` = |r|^2/|w| - eps. In space, collinear triangles (w3 = 0,
+the boundary of the shape space R^3_+) are where SO(3) stops acting freely; the
+guard ``collinear`` = w3/|w| - eps changes sign there, so a path through a
+collinear shape is stopped even within one step (the ``locked_inertia`` guard of
+every spatial ``ReducedSystem`` only touches zero there, quadratically in w3, and
+stops paths that approach or end near the degenerate set).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..mechanics.reduction import SO2, SO3, Bodies, ReducedSystem
+from ..mechanics.reduction import _LOCKED_HINT, SO2, SO3, Bodies, ReducedSystem
 
 __all__ = ["JacobiSection", "NBodyCat", "ThreeBodyCat"]
 
@@ -122,10 +126,14 @@ class JacobiSection(eqx.Module):
 
 class _JacobiChart(eqx.Module):
     eps: float = eqx.field(static=True)
+    planar: bool = eqx.field(static=True, default=False)
 
     def __call__(self, w):
         n = jnp.sqrt(w @ w)
-        return {"jacobi_chart": 0.5 * (n + w[0]) / n - self.eps}
+        out = {"jacobi_chart": 0.5 * (n + w[0]) / n - self.eps}
+        if not self.planar:
+            out["collinear"] = w[2] / n - self.eps
+        return out
 
 
 class ThreeBodyCat(NBodyCat):
@@ -135,6 +143,14 @@ class ThreeBodyCat(NBodyCat):
     ``planar=True``: in the plane, rotations SO(2), w3 = 2 r x s of either sign.
     """
 
+    guard_hints: ClassVar[dict] = {
+        "locked_inertia": _LOCKED_HINT,
+        "collinear": _LOCKED_HINT,
+        "jacobi_chart": "the Jacobi section (2.6)-(2.7) places r along e1 and is singular where r = 0 "
+        "(particles 1 and 2 coincide, w on the negative w1 axis); the shape space itself is smooth "
+        "there: relabel the particles so that another pair stays apart, or lower chart_eps.",
+    }
+
     def __init__(self, masses=(1.0, 1.0, 1.0), *, planar=False, momentum="zero", chart_eps=1e-6,
                  guard_eps=1e-6):
         m = jnp.asarray(masses, float)
@@ -143,7 +159,7 @@ class ThreeBodyCat(NBodyCat):
         if not isinstance(masses, jax.core.Tracer) and not np.all(np.asarray(m) > 0):
             raise ValueError(f"masses must be positive, got {np.asarray(m)}")
         NBodyCat.__init__(self, m, JacobiSection(m, planar), 3, planar=planar, momentum=momentum,
-                          shape_names=("w1", "w2", "w3"), chart_guard=_JacobiChart(float(chart_eps)),
+                          shape_names=("w1", "w2", "w3"), chart_guard=_JacobiChart(float(chart_eps), planar),
                           guard_eps=guard_eps)
 
     @staticmethod
