@@ -110,6 +110,7 @@ __all__ = [
     "SO2",
     "SO3",
     "Symmetry",
+    "EllipseLoop",
     "curvature_integral",
 ]
 
@@ -961,8 +962,17 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     c = jnp.asarray(centre, float)
     b = jnp.zeros(system.k) if base is None else jnp.asarray(base, float)
     xg, wg = np.polynomial.legendre.leggauss(n)
-    s_nodes, s_w = 0.5 * (xg + 1), 0.5 * wg
-    a_nodes, a_w = np.pi * (xg + 1), np.pi * wg
+    S, Aa = np.meshgrid(0.5 * (xg + 1), np.pi * (xg + 1), indexing="ij")
+    W = np.outer(0.5 * wg, np.pi * wg)
+    return _curvature_quadrature(system, loop, c, b, jnp.asarray(S.ravel()), jnp.asarray(Aa.ravel()),
+                                 jnp.asarray(W.ravel()), (int(i), int(j)))
+
+
+@eqx.filter_jit
+def _curvature_quadrature(system, loop, c, b, s, a, w, plane):
+    """Compiled once per system structure and loop (a loop that is an equinox module
+    with array parameters, e.g. ``CircleLoop``, is traced: new sizes do not recompile)."""
+    i, j = plane
 
     def integrand(s, a):
         p = loop(a)
@@ -972,11 +982,20 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
         jac = s * _cross2(p - c, dp)
         return system.curvature(r)[:, i, j] * jac
 
-    S, Aa = np.meshgrid(s_nodes, a_nodes, indexing="ij")
-    W = np.outer(s_w, a_w)
-    return _integrate(system, integrand, jnp.asarray(S.ravel()), jnp.asarray(Aa.ravel()), jnp.asarray(W.ravel()))
-
-
-@eqx.filter_jit
-def _integrate(system, integrand, s, a, w):
     return jnp.einsum("n,na->a", w, jax.vmap(integrand)(s, a))
+
+
+class EllipseLoop(eqx.Module):
+    """alpha -> centre + (a cos alpha, b sin alpha): a loop for ``curvature_integral``."""
+
+    centre: jax.Array
+    a: jax.Array
+    b: jax.Array
+
+    def __init__(self, centre, a, b=None):
+        self.centre = jnp.asarray(centre, float)
+        self.a = jnp.asarray(a, float)
+        self.b = self.a if b is None else jnp.asarray(b, float)
+
+    def __call__(self, alpha):
+        return self.centre + jnp.stack([self.a * jnp.cos(alpha), self.b * jnp.sin(alpha)])
