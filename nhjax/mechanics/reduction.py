@@ -611,7 +611,13 @@ class ReducedSystem(AbstractSystem):
         return jnp.sum(m * jnp.sum(a[:, :2] * b[:, :2], -1)) + jnp.sum(J * a[:, 2] * b[:, 2])
 
     def _gram(self, V, W):
-        return jax.vmap(lambda a: jax.vmap(lambda b: self._form(a, b))(W))(V)
+        """Matrix of _form between the body-velocity arrays V (a, n, c) and W (b, n, c)."""
+        m, J = self.bodies.masses, self.bodies.inertias
+        if self.symmetry.spatial:
+            Wm = jnp.concatenate([W[..., :3] * m[:, None], jnp.einsum("nij,bnj->bni", J, W[..., 3:])], -1)
+        else:
+            Wm = W * jnp.stack([m, m, J], -1)
+        return jnp.einsum("anc,bnc->ab", V, Wm)
 
     def _poses_and_jacobian(self, r):
         return self.reference_poses(r), jax.jacfwd(self.reference_poses)(r)
@@ -747,15 +753,16 @@ class ReducedSystem(AbstractSystem):
         V = self._columns(S, DS)
         G = self._gram(V, V)
         I, B, Grr = G[:d, :d], G[:d, d:], G[d:, d:]
-        A = jnp.linalg.solve(I, B)
-        xi = jnp.linalg.solve(I, mu) - A @ rd
+        sol = jnp.linalg.solve(I, jnp.concatenate([B, mu[:, None]], 1))  # one factorization
+        A = sol[:, :-1]
+        xi = sol[:, -1] - A @ rd
         v = jnp.concatenate([xi, rd])
         w = self._vel(S, Sd, xi)
         cols = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), DS)
         dcols = jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0), DSd)
         # dl/dr_j = form(w, d_j w); d_j of (S, DS r') is (DS e_j, D^2S[e_j, r']) = (DS e_j, DSd e_j)
         dw = jax.vmap(lambda a, b: jax.jvp(lambda S_, Sd_: self._vel(S_, Sd_, xi), (S, Sd), (a, b))[1])(cols, dcols)
-        dl_dr = jax.vmap(lambda dwj: self._form(w, dwj))(dw)
+        dl_dr = self._gram(dw, w[None])[:, 0]
         # the columns' derivative along r', then D_r p[r'] = dG v with dG = form(dV, V) + form(V, dV)
         zero = jax.tree_util.tree_map(jnp.zeros_like, S)
         dVxi = jax.vmap(lambda e: jax.jvp(lambda S_: self._vel(S_, zero, e), (S,), (Sd,))[1])(jnp.eye(d))
@@ -763,7 +770,7 @@ class ReducedSystem(AbstractSystem):
             cols, dcols)
         dV = jnp.concatenate([dVxi, dVr], 0)
         dVv = jnp.einsum("a,anc->nc", v, dV)
-        Dp = jax.vmap(lambda dVa, Va: self._form(dVa, w) + self._form(Va, dVv))(dV, V)
+        Dp = self._gram(dV, w[None])[:, 0] + self._gram(V, dVv[None])[:, 0]
         if u is None:
             u = jnp.zeros(self.n_inputs, r.dtype)
         tau_xi, tau_r = self._inputs(r, u, S, V)
