@@ -88,7 +88,7 @@ class TrackShape(eqx.Module):
         return -4.0 * (f[:3] - ref) - 2.0 * f[3:]
 
 
-@pytest.mark.parametrize("which", ["three bodies", "four bodies"])
+@pytest.mark.parametrize("which", ["three bodies", pytest.param("four bodies", marks=pytest.mark.slow)])
 def test_reconstructed_motion_has_zero_angular_momentum(which):
     """Shape torques at zero angular momentum, in 3-D: the particles reconstructed in
     space, x_i = R(t) rho_i(q(t)), with velocities from the integrator's own group
@@ -155,6 +155,7 @@ def _loop_turn(kin, centre, rho):
     return tr, integral
 
 
+@pytest.mark.slow
 def test_three_body_loops_turn_by_the_curvature_integral():
     """Three bodies in space: their connection takes values along the triangle's normal
     (abelian), so a loop in (w1, w2) turns them by exactly -(integral of F)."""
