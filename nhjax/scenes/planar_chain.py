@@ -60,7 +60,6 @@ translation part vanishes with the centre of mass as reference point).
 
 from __future__ import annotations
 
-from typing import ClassVar
 
 import equinox as eqx
 import jax
