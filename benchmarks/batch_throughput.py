@@ -1,27 +1,32 @@
-"""Batch throughput, single-trajectory speed, compile time and gradient cost (issue 4 goals).
+"""Batch throughput, single-trajectory speed, first-call time and gradient cost (issue 13 goals).
 
-All on the torque-driven falling cat of benchmarks/peers/falling_cat.py, measured
-in one run against the Numba Dormand-Prince 5(4) peer (single and prange batch):
+The work users run, on the torque-driven falling cat (Iwai 7.14-7.15; peer: the
+Numba Dormand-Prince 5(4) of benchmarks/peers/falling_cat.py, same step-size
+control), rtol = atol = 1e-8, in one run, peers and nhjax timed in interleaved
+rounds (medians), load average printed at start and end:
 
-* single trajectory after compile, rtol = atol = 1e-8: jax.jit(simulate) vs numba,
-  both with their final-state error;
-* batch throughput (trajectories/s) for 1, 64, 1024, 16384 members on all local
-  cores: nhjax.simulate_batch vs numba prange, with the worst error in the batch
-  (against per-member SciPy DOP853 1e-13 references on a random subset of 32),
-  and the process's peak resident memory after each size (memory growth; the
-  saved states are 2 x 5 float64 per member, chunks of 1024 members bound the
-  working memory);
-* compile time of simulate() for the scene;
-* gradient of a terminal cost (psi(T)^2) in the 2 torque amplitudes by jax.grad,
-  as a ratio to one forward solve, for each adjoint (nhjax.DiscreteAdjoint: its
-  default, which for 2 inputs carries their tangents through the forward solve,
-  and its recorded-step sweeps -- per-step VJPs, chunked forward/reverse step
-  Jacobians; diffrax's recursive checkpointing and backsolve; and jax.jacfwd with
-  diffrax's ForwardMode), with its error against central differences. The goals
-  table gives the best jax.grad ratio and, beside it, the pure reverse sweep's.
+* **unequal batches** (the workload of issue 13): I1 = 1, lam = 0.4, B = 0.5,
+  u = (0.3 sin 2t, 0.2 cos 3t), T = 10 s, initial states uniform in theta in
+  [0.5, 1.5], chi in [-1, 1], theta' and chi' in [-1, 1]; members whose motion
+  reaches the singular chart (sin theta = 0, where the peer would integrate
+  garbage) are drawn again. Members need many-fold different step counts (the
+  distribution is printed). nhjax.simulate_batch on defaults as a user writes
+  them (saveat=2, diagnostics on) and lean (diagnostics off) against numba
+  prange on all cores, 1, 64, 1024 and 16384 members, worst final-state error of
+  each against SciPy DOP853 1e-13 references of 32 random members, peak memory;
+* the **uniform batch** of the earlier benchmark (the default case with small
+  perturbations: near-identical step counts), 1024 members, labelled as the
+  friendly case;
+* **single trajectory** after compile: jax.jit(simulate(...).xs[-1]) on defaults
+  (101 saved times, work tracked) and lean (saveat=2, track_work=False,
+  diagnostics=False) against numba;
+* **first simulate()** in a fresh process, cold and warm (a second process with
+  the persistent compilation cache), from benchmarks/compile_times.py;
+* **gradient** of a terminal cost (psi(T)^2) in the 2 torque amplitudes by
+  jax.grad, as a ratio to one forward solve, for each adjoint, with its error
+  against central differences.
 
-Writes experiments/out/bench/batch_throughput.{json,png} and prints the goals table
-and the load average at start and end (the machine may be shared).
+Writes experiments/out/bench/batch_throughput.{json,png} and prints the goals table.
 """
 
 from __future__ import annotations
@@ -59,64 +64,121 @@ def case():
     return cat, ctrl, jnp.asarray(c["y0"], float), float(c["t1"])
 
 
-def single(cat, ctrl, x0, t1):
-    ref = peers.reference_solution()
+#: The unequal workload: parameters of the cat and of the torques (as the peer's case dict).
+UNEQUAL = dict(peers.CAT_DEFAULT, I1=1.0, lam=0.4, B=0.5, a0=0.0, a1=0.3, w1=2.0, a2=0.2, w2=3.0)
+
+
+def unequal_case():
+    c = UNEQUAL
+    cat = FallingCat(I1=c["I1"], lam=c["lam"], B=c["B"])
+    ctrl = nhjax.Sinusoids([c["a0"], 0.0], [c["a1"], c["a2"]], [c["w1"], c["w2"]], [0.0, np.pi / 2])
+    return cat, ctrl, float(c["t1"])
+
+
+def unequal_states(cat, ctrl, t1, B, seed=0):
+    """B random initial states of the unequal workload whose motions stay in the chart."""
+    rng = np.random.default_rng(seed)
+    out, redrawn = [], 0
+    while len(out) < B:
+        n = max(64, int(1.1 * (B - len(out))))
+        Y = np.zeros((n, 5))
+        Y[:, 0] = rng.uniform(0.5, 1.5, n)
+        Y[:, 1] = rng.uniform(-1, 1, n)
+        Y[:, 3] = rng.uniform(-1, 1, n)
+        Y[:, 4] = rng.uniform(-1, 1, n)
+        tr = nhjax.simulate_batch(cat, Y, t1, control=ctrl, rtol=TOL, atol=TOL, diagnostics=False,
+                                  on_error="return")
+        ok = np.asarray(tr.ok)
+        redrawn += int((~ok).sum())
+        out.extend(Y[ok])
+    return np.asarray(out[:B]), redrawn
+
+
+ROUNDS = 3  # interleaved rounds of nhjax and numba timings (medians over rounds)
+
+
+def single(cat, ctrl, x0, t1, case):
+    """One trajectory after compile: jitted simulate on defaults and lean vs numba."""
+    ref = peers.reference_solution(dict(case, y0=tuple(np.asarray(x0))))
     t = time.perf_counter()
     first = nhjax.simulate(cat, x0, t1, control=ctrl, rtol=TOL, atol=TOL)
     compile_s = time.perf_counter() - t
-    eager = median_time(lambda: nhjax.simulate(cat, x0, t1, control=ctrl, rtol=TOL, atol=TOL).xs)
-    run = jax.jit(lambda x: nhjax.simulate(cat, x, t1, control=ctrl, rtol=TOL, atol=TOL, saveat=2,
-                                           track_work=False, diagnostics=False).xs[-1])
-    y = run(x0)
-    jit_s = median_time(lambda: run(x0))
-    p, y0 = peers.case_params(), peers.case_y0()
+    runs = {
+        "defaults": jax.jit(lambda x: nhjax.simulate(cat, x, t1, control=ctrl, rtol=TOL, atol=TOL).xs[-1]),
+        "lean": jax.jit(lambda x: nhjax.simulate(cat, x, t1, control=ctrl, rtol=TOL, atol=TOL, saveat=2,
+                                                  track_work=False, diagnostics=False).xs[-1]),
+    }
+    errors = {k: float(np.max(np.abs(np.asarray(f(x0)) - ref))) for k, f in runs.items()}
+    p, y0 = peers.case_params(case), np.asarray(x0, float)
     ynb, nacc, _ = peers.dp54_numba(y0, t1, TOL, TOL, p)
-    nb_s = median_time(lambda: peers.dp54_numba(y0, t1, TOL, TOL, p))
+    times = {k: [] for k in [*runs, "numba"]}
+    for _ in range(ROUNDS):
+        for k, f in runs.items():
+            times[k].append(median_time(lambda f=f: f(x0)))
+        times["numba"].append(median_time(lambda: peers.dp54_numba(y0, t1, TOL, TOL, p)))
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    eager = median_time(lambda: nhjax.simulate(cat, x0, t1, control=ctrl, rtol=TOL, atol=TOL).xs)
     return dict(
-        compile_seconds=compile_s, simulate_seconds=eager, jit_seconds=jit_s,
-        jit_error=float(np.max(np.abs(np.asarray(y) - ref))), steps=int(first.num_accepted_steps),
-        numba_seconds=nb_s, numba_error=float(np.max(np.abs(ynb - ref))), numba_steps=int(nacc),
+        compile_seconds=compile_s, simulate_seconds=eager, jit_seconds=med["defaults"],
+        jit_lean_seconds=med["lean"], jit_error=errors["defaults"], jit_lean_error=errors["lean"],
+        steps=int(first.num_accepted_steps), numba_seconds=med["numba"],
+        numba_error=float(np.max(np.abs(ynb - ref))), numba_steps=int(nacc),
     )
 
 
-def batches(cat, ctrl, t1, sizes):
-    p = peers.case_params()
+def _worst_errors(Y0, traj, Ynb, case, t1, rng, n=32):
+    idx = rng.choice(len(Y0), size=min(len(Y0), n), replace=False)
+    worst_nh = worst_nb = 0.0
+    for i in idx:
+        ref = peers.reference_solution(dict(case, y0=tuple(Y0[i])))
+        worst_nh = max(worst_nh, float(np.max(np.abs(np.asarray(traj.x_final[i]) - ref))))
+        worst_nb = max(worst_nb, float(np.max(np.abs(Ynb[i] - ref))))
+    return worst_nh, worst_nb
+
+
+def batches(cat, ctrl, t1, sizes, case, Y0_all, label, vmapped_at=(1024,)):
+    """Throughput per batch size: simulate_batch on defaults and lean, numba prange,
+    (and vmapped diffrax at some sizes), interleaved rounds; worst errors; step counts."""
+    p = peers.case_params(case)
     rows = []
     rng = np.random.default_rng(1)
     for B in sizes:
-        Y0 = peers.perturbed_y0s(B, seed=0)
-        X0 = jnp.asarray(Y0)
-        # compile: a batch of min(B, chunk_size = 1024) members has the chunk shape the timed calls use
-        nhjax.simulate_batch(cat, X0[: min(B, 1024)], t1, control=ctrl, rtol=TOL, atol=TOL,
-                             track_work=False, diagnostics=False, progress=False)
-        nh_s = median_time(lambda: nhjax.simulate_batch(cat, X0, t1, control=ctrl, rtol=TOL, atol=TOL,
-                                                        track_work=False, diagnostics=False,
-                                                        progress=False).xs, repeats=3)
-        tr = nhjax.simulate_batch(cat, X0, t1, control=ctrl, rtol=TOL, atol=TOL, track_work=False,
-                                  diagnostics=False, progress=False)
-        # the same batch through vmapped diffeqsolve (simulate_batch's path when an adjoint is
-        # given): the lock-step integrator's gain, measured in the same run
-        vm_kw = dict(control=ctrl, rtol=TOL, atol=TOL, track_work=False, diagnostics=False, progress=False,
-                     adjoint=diffrax.RecursiveCheckpointAdjoint())
-        nhjax.simulate_batch(cat, X0[: min(B, 1024)], t1, **vm_kw)
-        vm_s = median_time(lambda: nhjax.simulate_batch(cat, X0, t1, **vm_kw).xs, repeats=3)
-        peers.dp54_numba_batch(Y0[:2], t1, TOL, TOL, p)
-        nb_s = median_time(lambda: peers.dp54_numba_batch(Y0, t1, TOL, TOL, p), repeats=3)
-        Ynb, _ = peers.dp54_numba_batch(Y0, t1, TOL, TOL, p)
-        idx = rng.choice(B, size=min(B, 32), replace=False)
-        worst_nh = worst_nb = 0.0
-        for i in idx:
-            ref = peers.reference_solution(dict(peers.CAT_DEFAULT, y0=tuple(Y0[i])))
-            worst_nh = max(worst_nh, float(np.max(np.abs(np.asarray(tr.xs[i, -1]) - ref))))
-            worst_nb = max(worst_nb, float(np.max(np.abs(Ynb[i] - ref))))
+        Y0 = Y0_all[:B]
+        calls = {
+            "defaults": lambda: nhjax.simulate_batch(cat, Y0, t1, control=ctrl, rtol=TOL, atol=TOL).xs,
+            "lean": lambda: nhjax.simulate_batch(cat, Y0, t1, control=ctrl, rtol=TOL, atol=TOL,
+                                                 diagnostics=False).xs,
+            "numba": lambda: peers.dp54_numba_batch(Y0, t1, TOL, TOL, p),
+        }
+        if B in vmapped_at:  # simulate_batch's path when an adjoint is given
+            calls["vmapped diffrax"] = lambda: nhjax.simulate_batch(
+                cat, Y0, t1, control=ctrl, rtol=TOL, atol=TOL, diagnostics=False,
+                adjoint=diffrax.RecursiveCheckpointAdjoint()).xs
+        for f in calls.values():  # compile / warm up
+            f()
+        times = {k: [] for k in calls}
+        for _ in range(ROUNDS):
+            for k, f in calls.items():
+                times[k].append(median_time(f, repeats=3))
+        med = {k: float(np.median(v)) for k, v in times.items()}
+        tr = nhjax.simulate_batch(cat, Y0, t1, control=ctrl, rtol=TOL, atol=TOL)
+        Ynb, nb_steps = peers.dp54_numba_batch(Y0, t1, TOL, TOL, p)
+        worst_nh, worst_nb = _worst_errors(Y0, tr, Ynb, case, t1, rng)
+        steps = np.asarray(tr.num_accepted_steps)
         rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB -> MiB (Linux)
-        rows.append(dict(batch=B, nhjax_seconds=nh_s, numba_seconds=nb_s, nhjax_traj_per_s=B / nh_s,
-                         nhjax_vmapped_diffrax_traj_per_s=B / vm_s,
-                         numba_traj_per_s=B / nb_s, nhjax_worst_error=worst_nh, numba_worst_error=worst_nb,
-                         saved_bytes_per_member=int(2 * 5 * 8), peak_rss_mib_so_far=rss))
-        print(f"  B={B:6d}: nhjax {B / nh_s:10.0f} traj/s (worst err {worst_nh:.1e}; vmapped diffrax {B / vm_s:8.0f})   "
-              f"numba prange {B / nb_s:10.0f} traj/s (worst err {worst_nb:.1e})   "
-              f"peak RSS so far {rss:.0f} MiB", flush=True)
+        row = dict(workload=label, batch=B, steps_min=int(steps.min()), steps_median=float(np.median(steps)),
+                   steps_max=int(steps.max()), numba_steps_median=float(np.median(nb_steps)),
+                   nhjax_worst_error=worst_nh, numba_worst_error=worst_nb, peak_rss_mib_so_far=rss,
+                   **{f"{k.replace(' ', '_')}_traj_per_s": B / v for k, v in med.items()})
+        row["defaults_vs_numba"] = row["defaults_traj_per_s"] / row["numba_traj_per_s"]
+        row["lean_vs_numba"] = row["lean_traj_per_s"] / row["numba_traj_per_s"]
+        rows.append(row)
+        vm = (f"; vmapped diffrax {row['vmapped_diffrax_traj_per_s']:7.0f}" if "vmapped diffrax" in med else "")
+        print(f"  {label} B={B:6d}: steps {row['steps_min']}-{row['steps_max']} (median {row['steps_median']:.0f}); "
+              f"nhjax defaults {row['defaults_traj_per_s']:8.0f}/s ({row['defaults_vs_numba']:.2f}x numba), "
+              f"lean {row['lean_traj_per_s']:8.0f}/s ({row['lean_vs_numba']:.2f}x), numba prange "
+              f"{row['numba_traj_per_s']:8.0f}/s{vm}; worst error nhjax {worst_nh:.1e}, numba {worst_nb:.1e}; "
+              f"peak RSS {rss:.0f} MiB", flush=True)
     return rows
 
 
@@ -182,17 +244,29 @@ def plot(rows, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 4))
-    B = [r["batch"] for r in rows]
-    ax.loglog(B, [r["nhjax_traj_per_s"] for r in rows], "o-", label="nhjax simulate_batch")
-    ax.loglog(B, [r["nhjax_vmapped_diffrax_traj_per_s"] for r in rows], "^:", label="vmapped diffeqsolve")
-    ax.loglog(B, [r["numba_traj_per_s"] for r in rows], "s--", label="numba DP5, prange")
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    un = [r for r in rows if r["workload"] == "unequal"]
+    B = [r["batch"] for r in un]
+    ax.loglog(B, [r["defaults_traj_per_s"] for r in un], "o-", label="nhjax simulate_batch, defaults")
+    ax.loglog(B, [r["lean_traj_per_s"] for r in un], "o--", label="nhjax, diagnostics off")
+    ax.loglog(B, [r["numba_traj_per_s"] for r in un], "s-", label="numba DP5, prange")
+    for r in rows:
+        if r["workload"] == "uniform":
+            ax.plot(r["batch"], r["defaults_traj_per_s"], "^", color="C0", label="nhjax, uniform batch (friendly)")
+            ax.plot(r["batch"], r["numba_traj_per_s"], "^", color="C2", label="numba, uniform batch")
     ax.set(xlabel="batch size", ylabel="trajectories per second",
-           title=f"falling cat, T = 10 s, rtol = atol = {TOL:g}, {jax.local_device_count()} device(s)")
+           title=f"falling cat, members with unequal step counts, rtol = {TOL:g}, {os.cpu_count()} cores")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
+    ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
+
+
+def first_call():
+    """Cold and warm first simulate() of the cat in fresh processes (compile_times.py)."""
+    import compile_times
+
+    return compile_times.measure("FallingCat")
 
 
 def main():
@@ -200,16 +274,28 @@ def main():
     load_start = os.getloadavg()
     print(f"load average at start (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}",
           flush=True)
-    cat, ctrl, x0, t1 = case()
-    print("single trajectory:")
-    s = single(cat, ctrl, x0, t1)
-    print(f"  jax.jit(simulate) {s['jit_seconds'] * 1e3:.3f} ms (err {s['jit_error']:.1e}, {s['steps']} steps); "
-          f"simulate() call {s['simulate_seconds'] * 1e3:.2f} ms; numba {s['numba_seconds'] * 1e3:.3f} ms "
-          f"(err {s['numba_error']:.1e}, {s['numba_steps']} steps); compile {s['compile_seconds']:.2f} s")
-    print("batches:")
-    b = batches(cat, ctrl, t1, [1, 64, 1024, 16384])
-    print("gradient of psi(T)^2 in the torque amplitudes:")
-    g = gradients(cat, ctrl, x0, t1)
+    cat, ctrl, t1 = unequal_case()
+    Y0_all, redrawn = unequal_states(cat, ctrl, t1, 16384)
+    print(f"unequal workload: 16384 initial states ({redrawn} members that reached sin(theta) = 0 drawn again)")
+    print("single trajectory (unequal case, x0 = its first member):")
+    s = single(cat, ctrl, Y0_all[0], t1, UNEQUAL)
+    print(f"  jax.jit(simulate) defaults {s['jit_seconds'] * 1e3:.3f} ms (err {s['jit_error']:.1e}), lean "
+          f"{s['jit_lean_seconds'] * 1e3:.3f} ms (err {s['jit_lean_error']:.1e}), {s['steps']} steps; "
+          f"numba {s['numba_seconds'] * 1e3:.3f} ms (err {s['numba_error']:.1e}, {s['numba_steps']} steps); "
+          f"eager simulate() {s['simulate_seconds'] * 1e3:.2f} ms; first call in this process "
+          f"{s['compile_seconds']:.2f} s")
+    print("batches, unequal members (the work users run):")
+    rows = batches(cat, ctrl, t1, [1, 64, 1024, 16384], UNEQUAL, Y0_all, "unequal")
+    print("batch, uniform members (the friendly case):")
+    ucat, uctrl, _, ut1 = case()
+    rows += batches(ucat, uctrl, ut1, [1024], peers.CAT_DEFAULT, peers.perturbed_y0s(1024, seed=0), "uniform",
+                    vmapped_at=())
+    print("first simulate() in a fresh process (FallingCat, cold / warm with the persistent cache):")
+    fc = first_call()
+    print(f"  cold {fc.get('first_call_s', float('nan')):.2f} s, warm {fc.get('warm_first_call_s', float('nan')):.2f} s")
+    print("gradient of psi(T)^2 in the torque amplitudes (default case, rtol 1e-10):")
+    gcat, gctrl, gx0, gt1 = case()
+    g = gradients(gcat, gctrl, gx0, gt1)
     print(f"  forward solve {g['forward_seconds'] * 1e3:.3f} ms (a jitted call that does nothing: "
           f"{g['dispatch_seconds'] * 1e3:.3f} ms); medians over {g['rounds']} interleaved rounds")
     for r in g["rows"]:
@@ -217,29 +303,34 @@ def main():
             continue
         print(f"  {r['adjoint']:46s} {r['ratio_to_forward']:6.2f} x forward   rel. error vs FD {r['error_vs_fd']:.1e}"
               f"   (compile {r['compile_seconds']:.1f} s)")
-    b1024 = [r for r in b if r["batch"] == 1024][0]
+    by = {(r["workload"], r["batch"]): r for r in rows}
     best_grad = min(r["ratio_to_forward"] for r in g["rows"]
                     if r["adjoint"].startswith("reverse") and "ratio_to_forward" in r)
-    sweep = [r["ratio_to_forward"] for r in g["rows"] if "'vjp'" in r["adjoint"] and "ratio_to_forward" in r]
     goals = [
-        ("single trajectory vs numba (goal <= 2x)", s["jit_seconds"] / s["numba_seconds"]),
-        ("batch 1024 throughput vs numba prange (goal >= 1x)", b1024["nhjax_traj_per_s"] / b1024["numba_traj_per_s"]),
-        ("compile time of simulate, s (goal < 3)", s["compile_seconds"]),
-        ("jax.grad gradient / forward (goal <= 3x)", best_grad),
-    ] + [("  backward sweep of recorded steps (jacobians='vjp')", sweep[0])] * bool(sweep)
+        ("unequal batch 1024, defaults, x numba prange (goal >= 2)", by[("unequal", 1024)]["defaults_vs_numba"]),
+        ("unequal batch 16384, defaults, x numba prange (goal >= 2)", by[("unequal", 16384)]["defaults_vs_numba"]),
+        ("  the same, diagnostics off: 1024", by[("unequal", 1024)]["lean_vs_numba"]),
+        ("  the same, diagnostics off: 16384", by[("unequal", 16384)]["lean_vs_numba"]),
+        ("  uniform batch 1024 (friendly), defaults", by[("uniform", 1024)]["defaults_vs_numba"]),
+        ("jitted single solve on defaults / numba (goal <= 1.5)", s["jit_seconds"] / s["numba_seconds"]),
+        ("  lean options", s["jit_lean_seconds"] / s["numba_seconds"]),
+        ("jax.grad gradient / forward (goal <= 3)", best_grad),
+        ("first simulate(), cold, s (goal < 3)", fc.get("first_call_s", float("nan"))),
+        ("first simulate(), warm, s (goal < 0.5)", fc.get("warm_first_call_s", float("nan"))),
+    ]
     print("\ngoals:")
     for name, v in goals:
-        print(f"  {name:52s} {v:8.2f}")
+        print(f"  {name:58s} {v:8.2f}")
     load_end = os.getloadavg()
     meta = dict(command="python benchmarks/batch_throughput.py", platform=platform.platform(),
                 cpu_count=os.cpu_count(), jax=jax.__version__, load_average_start=list(load_start),
-                load_average_end=list(load_end))
+                load_average_end=list(load_end), redrawn_members=redrawn)
     (OUT / "batch_throughput.json").write_text(json.dumps(
-        dict(meta=meta, single=s, batches=b, gradients=g, goals=dict(goals), devices=jax.local_device_count()),
-        indent=1))
+        dict(meta=meta, single=s, batches=rows, first_call=fc, gradients=g, goals=dict(goals),
+             devices=jax.local_device_count()), indent=1))
     print(f"load average (1, 5, 15 min): start {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}, "
           f"end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}")
-    plot(b, OUT / "batch_throughput.png")
+    plot(rows, OUT / "batch_throughput.png")
     print(f"written: {OUT}/batch_throughput.json, .png")
 
 

@@ -38,7 +38,17 @@ import optax
 
 import nhjax
 
-from .problem import OCP, CostAugmented, ProblemError, _OnState, rollout
+from .problem import (
+    OCP,
+    CostAugmented,
+    ProblemError,
+    _OnState,
+    check_guess,
+    check_ocp,
+    check_parametrization,
+    check_tolerances,
+    rollout,
+)
 
 __all__ = ["DirectResult", "solve_direct"]
 
@@ -207,19 +217,18 @@ def solve_direct(
     optimizer : "lbfgs", "adam", or an optax transformation (reuse one object across
         calls: a new object compiles anew).
     """
-    if param.dim != ocp.system.control_dim:
-        raise ProblemError(
-            f"the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
-            f"{ocp.system.control_dim}"
-        )
+    owner = "solve_direct"
+    check_ocp(ocp, owner)
+    check_parametrization(param, ocp, owner)
     if shooting not in ("single", "multiple"):
         raise ProblemError("shooting must be 'single' or 'multiple'")
     if shooting == "multiple" and (not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1):
         raise ProblemError("multiple shooting needs a vector state")
+    check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, ftol=ftol, gtol=gtol, rho=rho,
+                     max_outer=(max_outer, "int"), max_inner=(max_inner, "int"),
+                     segments=(segments, "int", 2 if shooting == "multiple" else 1))
     t_start = time.perf_counter()
-    p0 = jnp.zeros(param.size) if guess is None else jnp.asarray(guess, float)
-    if p0.shape != (param.size,):
-        raise ProblemError(f"guess has shape {p0.shape}, the parametrization takes ({param.size},)")
+    p0 = jnp.zeros(param.size) if guess is None else check_guess("guess", guess, (param.size,), "parametrization")
     S = segments if shooting == "multiple" else 1
     tr = _Transcription(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float), S)
     z = p0

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .direct import DirectResult
-from .problem import OCP, ProblemError, rollout
+from .problem import OCP, ProblemError, check_guess, check_ocp, check_parametrization, check_tolerances, rollout
 
 __all__ = ["solve_direct_newton"]
 
@@ -172,12 +172,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     Returns a ``controls.DirectResult`` (multipliers lam: dJ + lam . dpsi = 0).
     """
     t_start = time.perf_counter()
-    if param.dim != ocp.system.control_dim:
-        raise ProblemError(f"the parametrization has {param.dim} inputs, the system takes "
-                           f"{ocp.system.control_dim}")
-    z = jnp.asarray(guess, float)
-    if z.shape != (param.size,):
-        raise ProblemError(f"guess has shape {z.shape}, the parametrization takes ({param.size},)")
+    owner = "solve_direct_newton"
+    check_ocp(ocp, owner)
+    check_parametrization(param, ocp, owner)
+    check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, fd_step=fd_step,
+                     max_iter=(max_iter, "int"))
+    z = check_guess("guess", guess, (param.size,), "parametrization")
     m, P = ocp.n_constraints, param.size
     if m == 0:
         raise ProblemError("solve_direct_newton needs terminal constraints; use controls.solve_direct")

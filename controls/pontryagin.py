@@ -42,7 +42,7 @@ import optimistix as optx
 import nhjax
 from nhjax.mechanics import AbstractSystem
 
-from .problem import OCP, ProblemError
+from .problem import OCP, ProblemError, as_problem_error, check_guess, check_ocp, check_tolerances
 
 __all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "solve_pontryagin"]
 
@@ -199,31 +199,49 @@ def solve_pontryagin(
     solver : "newton" (optimistix.Newton on the residuals) or "lm"
         (Levenberg–Marquardt, more robust far from the solution).
     """
+    owner = "solve_pontryagin"
+    check_ocp(ocp, owner)
     if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
         raise ProblemError("the Pontryagin solver needs a vector state; use the direct methods")
     if shooting not in ("single", "multiple"):
         raise ProblemError("shooting must be 'single' or 'multiple'")
+    with as_problem_error():
+        nhjax._validate.choice("solver", solver, ("newton", "lm"), owner=owner)
+        nhjax._validate.choice("u_star", u_star, ("quadratic", "newton"), owner=owner)
+    check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"),
+                     segments=(segments, "int", 2 if shooting == "multiple" else 1))
     t_start = time.perf_counter()
     n, m = ocp.x0.shape[0], ocp.n_constraints
     ham = HamiltonianSystem(ocp, u_star)
-    p0 = jnp.zeros(n) if p0_guess is None else jnp.asarray(p0_guess, float)
-    nu = jnp.zeros(m) if nu_guess is None else jnp.asarray(nu_guess, float)
-    if p0.shape != (n,) or nu.shape != (m,):
+    if p0_guess is not None and np.shape(p0_guess) != (n,) or nu_guess is not None and np.shape(nu_guess) != (m,):
         raise ProblemError(f"costate guess must have shape ({n},) and multiplier guess ({m},)")
+    p0 = jnp.zeros(n) if p0_guess is None else check_guess("p0_guess", p0_guess, (n,), "costate guess")
+    nu = jnp.zeros(m) if nu_guess is None else check_guess("nu_guess", nu_guess, (m,), "multiplier guess")
     rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
     S = segments if shooting == "multiple" else 1
     sh = _Shooting(ham, rt, at, S)
     z0 = jnp.concatenate([p0, nu])
+    _check_start(ham, sh, p0, nu, rt, at)
     if S > 1:
         guess = _shoot(ham, rt, at, saveat=S + 1, x0=ocp.x0, p0=p0).xs
         z0 = jnp.concatenate([z0, guess[1:-1].reshape(-1)])
-    if solver == "newton":
-        sol = optx.root_find(_residual_fn, _root_solver(solver, tol), z0, args=sh,
-                             max_steps=max_steps, throw=False)
-    else:
-        sol = optx.least_squares(_residual_fn, _root_solver(solver, tol), z0, args=sh,
+    try:
+        if solver == "newton":
+            sol = optx.root_find(_residual_fn, _root_solver(solver, tol), z0, args=sh,
                                  max_steps=max_steps, throw=False)
+        else:
+            sol = optx.least_squares(_residual_fn, _root_solver(solver, tol), z0, args=sh,
+                                     max_steps=max_steps, throw=False)
+    except eqx.EquinoxRuntimeError as e:
+        raise ProblemError(
+            f"{owner}: a shooting iterate left the region where the extremal can be integrated (the start "
+            f"was finite; a later Newton step was too long): {str(e).splitlines()[0]}. Try solver='lm' "
+            "(damped steps), a closer p0_guess, or continuation from an easier problem") from e
     z = sol.value
+    if not bool(jnp.all(jnp.isfinite(z))):
+        raise ProblemError(
+            f"{owner}: the shooting iteration diverged to NaN/inf from a finite start; try solver='lm' "
+            "(damped steps), a closer p0_guess, or continuation from an easier problem")
     res = float(_residual_max(sh, z))
     p0, nu = z[:n], z[n:n + m]
     traj, us, cost = _extremal(ham, p0, rt, at)
@@ -236,6 +254,57 @@ def solve_pontryagin(
         converged=converged, message=msg, trajectory=traj, controls=np.asarray(us),
         seconds=time.perf_counter() - t_start, iterations=int(sol.stats["num_steps"]),
     )
+
+
+@eqx.filter_jit
+def _terminal_pieces(ocp, xT, nu):
+    """Phi, psi and their derivatives at x(T) (for the start's diagnosis)."""
+    phi, psi = ocp.terminal(xT)
+    res = _terminal_residual(ocp, xT, jnp.zeros_like(xT), nu)
+    return phi, psi, res
+
+
+def _check_start(ham, sh, p0, nu, rt, at):
+    """The shooting residual at the initial guess must be finite; if it is not, say which
+    piece is to blame (the extremal, the terminal constraints or cost, or their
+    derivatives) before Newton's method turns the NaN into a failed solve elsewhere."""
+    owner = "solve_pontryagin"
+    ocp = ham.ocp
+    z0 = jnp.concatenate([p0, nu])
+    try:
+        if np.isfinite(float(_residual_max(sh, z0))):
+            return
+    except eqx.EquinoxRuntimeError:
+        pass
+    try:
+        traj = _shoot(ham, rt, at, x0=ocp.x0, p0=p0)
+    except nhjax.IntegrationError as e:
+        raise ProblemError(
+            f"{owner}: the extremal from the initial costate guess cannot be integrated to T: {e}. The "
+            "state and costate equations are not finite along it; give a p0_guess closer to the solution "
+            "(or check the model's domain)") from e
+    xT = np.asarray(traj.xs[-1, : ocp.x0.shape[0]])
+    phi, psi, res = (np.asarray(a) for a in _terminal_pieces(ocp, jnp.asarray(xT), nu))
+    where = np.array2string(xT, precision=6, separator=", ")
+    if not np.all(np.isfinite(psi)):
+        bad = np.nonzero(~np.isfinite(psi))[0].tolist()
+        raise ProblemError(
+            f"{owner}: terminal_constraints(x(T)) is NaN/inf at the start (components {bad}) at the terminal "
+            f"state x(T) = {where} of the initial costate guess: the constraint function is not defined "
+            "there (e.g. sqrt or log of a negative number). Write it so that it is finite wherever the motion "
+            "can end, or give a p0_guess whose extremal ends where it is defined")
+    if not np.isfinite(phi):
+        raise ProblemError(
+            f"{owner}: terminal_cost(x(T)) is NaN/inf at the start, at the terminal state x(T) = {where} of "
+            "the initial costate guess: write it so that it is finite wherever the motion can end")
+    if not np.all(np.isfinite(res)):
+        raise ProblemError(
+            f"{owner}: the derivative of terminal_cost or terminal_constraints is NaN/inf at the terminal "
+            f"state x(T) = {where} of the initial costate guess (e.g. sqrt(x) at x = 0): the transversality "
+            "condition p(T) = dPhi/dx + (dpsi/dx)^T nu needs them differentiable there")
+    raise ProblemError(
+        f"{owner}: the shooting residual is NaN/inf at the initial guess although the extremal and the "
+        "terminal functions are finite: a segment of the multiple-shooting guess may fail; try shooting='single'")
 
 
 class _CostOfExtremal(AbstractSystem):
@@ -257,6 +326,11 @@ def continuation(solve: Callable, values, z0=None):
     ``solve(value, z)`` must return a result with fields p0 and nu (z = None at the
     first value means the solver's default guess). Returns the list of results.
     """
+    if not callable(solve):
+        raise ProblemError(f"continuation: solve must be callable as solve(value, z), got {type(solve).__name__}")
+    values = list(values)
+    if not values:
+        raise ProblemError("continuation: values is empty; pass the parameter values to walk through")
     results, z = [], z0
     for v in values:
         r = solve(v, z)
@@ -300,7 +374,16 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     """
     from .problem import rollout
 
+    owner = "pmp_residual"
+    check_ocp(ocp, owner)
+    if not callable(control):
+        raise ProblemError(f"{owner}: control must be callable as u(t, x), got {type(control).__name__}")
+    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
+        raise ProblemError(f"{owner}: the costate check needs a vector state")
+    check_tolerances(owner, rtol=rtol, atol=atol, n_points=(n_points, "int", 2))
     m = ocp.n_constraints
+    if multipliers is not None:
+        check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
     traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=2)
     xT = traj.xs[0][-1]
     ham = HamiltonianSystem(ocp)

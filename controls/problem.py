@@ -20,15 +20,77 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
+import contextlib
+
+import numpy as np
+
 import nhjax
+from nhjax import _validate as V
+from nhjax.errors import NhjaxError, ProblemError
 from nhjax.lie import Euclidean
 from nhjax.mechanics import AbstractSystem
 
 __all__ = ["OCP", "ProblemError", "rollout"]
 
 
-class ProblemError(ValueError):
-    """An optimal-control problem that cannot be posed or solved as given."""
+@contextlib.contextmanager
+def as_problem_error():
+    """Re-raise the validation layer's errors (ParameterError, StateError, ...) as
+    ProblemError with the same words: controls' entry points raise one error class."""
+    try:
+        yield
+    except ProblemError:
+        raise
+    except NhjaxError as e:
+        if isinstance(e, (ValueError, TypeError)):
+            raise ProblemError(str(e)) from e
+        raise
+
+
+def check_tolerances(owner, **tols):
+    """Positive finite tolerances (and integer budgets, passed as (value, 'int'))."""
+    with as_problem_error():
+        for name, v in tols.items():
+            if isinstance(v, tuple):
+                V.integer(name, v[0], minimum=v[2] if len(v) > 2 else 1, owner=owner)
+            elif v is not None:
+                V.positive(name, v, owner=owner, shape=())
+
+
+def check_ocp(ocp, owner):
+    if not isinstance(ocp, OCP):
+        raise ProblemError(f"{owner}: the problem must be a controls.OCP, got {type(ocp).__name__}")
+
+
+def check_parametrization(param, ocp, owner):
+    """A controls.parametrize object whose signal covers [0, T] with the system's inputs."""
+    for attr in ("dim", "size", "signal", "T"):
+        if not hasattr(param, attr):
+            raise ProblemError(
+                f"{owner}: param must be a control parametrization (controls.PiecewiseLinear, Chebyshev, "
+                f"...), got {type(param).__name__}")
+    if param.dim != ocp.system.control_dim:
+        raise ProblemError(
+            f"the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
+            f"{ocp.system.control_dim}"
+        )
+    t0, T = float(getattr(param, "t0", 0.0)), float(param.T)
+    if t0 > 1e-12 * max(1.0, ocp.T) or t0 + T < ocp.T * (1 - 1e-12):
+        raise ProblemError(
+            f"{owner}: the parametrization covers [{t0:g}, {t0 + T:g}] but the problem's horizon is "
+            f"[0, {ocp.T:g}]: build it with T = {ocp.T:g} (e.g. {type(param).__name__}(n, {ocp.T:g}, "
+            f"{param.dim}))")
+
+
+def check_guess(name, guess, shape, owner):
+    """A finite guess of the given shape (None passes)."""
+    if guess is None:
+        return None
+    with as_problem_error():
+        g = V.real(name, guess, owner=owner)
+    if g.shape != tuple(shape):
+        raise ProblemError(f"{name} has shape {g.shape}, the {owner} takes {tuple(shape)}")
+    return g
 
 
 class OCP(eqx.Module):
@@ -50,24 +112,87 @@ class OCP(eqx.Module):
 
     def __init__(self, system, x0, T, running_cost, terminal_cost=None, terminal_constraints=None,
                  u_lower=None, u_upper=None):
+        owner = "OCP"
+        if not isinstance(system, AbstractSystem):
+            raise ProblemError(f"{owner}: system must be an nhjax system (a scene, a Lagrangian, ...), got "
+                               f"{type(system).__name__}")
         if system.control_dim == 0:
             raise ProblemError(f"{type(system).__name__} has no control inputs to optimize")
-        if not float(T) > 0:
-            raise ProblemError(f"the horizon T must be positive, got {T}")
+        try:
+            T = float(T)
+        except (TypeError, ValueError):
+            raise ProblemError(f"{owner}: the horizon T must be a positive number of seconds, got {T!r}") from None
+        if not (np.isfinite(T) and T > 0):
+            raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
+                               "duration of the motion in seconds")
+        with as_problem_error():
+            V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
+            V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",
+                       optional=True)
+            V.function("terminal_constraints", terminal_constraints, owner=owner,
+                       signature="terminal_constraints(x) -> (m,)", optional=True)
         self.system = system
-        self.x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
-        self.T = float(T)
+        try:
+            self.x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
+        except (TypeError, ValueError) as e:
+            raise ProblemError(f"{owner}: x0 must be an array (or pytree of arrays) of real numbers: {e}") from None
+        self.T = T
         self.running_cost = running_cost
         self.terminal_cost = terminal_cost
         self.terminal_constraints = terminal_constraints
         k = system.control_dim
-        self.u_lower = None if u_lower is None else jnp.broadcast_to(jnp.asarray(u_lower, float), (k,))
-        self.u_upper = None if u_upper is None else jnp.broadcast_to(jnp.asarray(u_upper, float), (k,))
+        self.u_lower = self._bound("u_lower", u_lower, k)
+        self.u_upper = self._bound("u_upper", u_upper, k)
         if (self.u_lower is None) != (self.u_upper is None):
-            raise ProblemError("give both u_lower and u_upper, or neither")
-        if self.u_lower is not None and bool(jnp.any(self.u_lower >= self.u_upper)):
-            raise ProblemError("every lower control bound must be below the upper one")
+            raise ProblemError("give both u_lower and u_upper, or neither (use -inf or inf for a free side)")
+        if self.u_lower is not None and not V.is_traced(self.u_lower, self.u_upper):
+            lo, hi = np.asarray(self.u_lower), np.asarray(self.u_upper)
+            if np.any(lo >= hi):
+                i = int(np.argmax(lo >= hi))
+                raise ProblemError(
+                    f"every lower control bound must be below the upper one: input {i} has u_lower = "
+                    f"{lo[i]:g} >= u_upper = {hi[i]:g}; swap them or widen the box")
         self._check_shapes()
+        self._check_x0()
+
+    @staticmethod
+    def _bound(name, value, k):
+        if value is None:
+            return None
+        try:
+            b = jnp.broadcast_to(jnp.asarray(value, float), (k,))
+        except (TypeError, ValueError):
+            raise ProblemError(f"OCP: {name} must be a number or an array of {k} numbers (one per input), "
+                               f"got {value!r}") from None
+        if not V.is_traced(b) and np.any(np.isnan(np.asarray(b))):
+            raise ProblemError(f"OCP: {name} contains NaN; pass numbers (or -inf/inf for an unbounded side)")
+        return b
+
+    def _check_x0(self):
+        """x0 against the system: structure and shapes, finiteness, group membership,
+        constraints and chart guards (concrete x0 only)."""
+        if V.is_traced(self.x0, self.system):
+            return
+        with as_problem_error():
+            V.check_state(self.system, self.x0, owner="OCP")
+            leaves = [np.asarray(a) for a in jtu.tree_leaves(self.x0)]
+            if not all(np.all(np.isfinite(a)) for a in leaves):
+                raise ProblemError(f"OCP: x0 contains NaN or inf at "
+                                   f"{V.nonfinite_components(self.system, self.x0)}; pass finite numbers")
+            for part, sp, leaf in V._group_parts(self.system.spaces, self.x0):
+                V._check_group_value(part, sp, np.asarray(leaf), 1e-8, "OCP")
+        for name, res in self.system.constraints(0.0, self.x0).items():
+            r = float(jnp.max(jnp.abs(jnp.asarray(res)))) if jnp.size(res) else 0.0
+            if not r <= 1e-8:
+                raise ProblemError(
+                    f"OCP: x0 violates constraint '{name}' of {type(self.system).__name__}: |residual| = "
+                    f"{r:.3e} > 1e-8; start from a consistent state (the scene's initial_state, or "
+                    "system.project(0.0, x0))")
+        for name, g in self.system.guards(self.x0).items():
+            if not float(g) > 0:
+                raise ProblemError(
+                    f"OCP: x0 is outside the chart of {type(self.system).__name__} (guard '{name}' = "
+                    f"{float(g):.3g} <= 0). " + self.system.guard_hints.get(name, ""))
 
     def _check_shapes(self):
         u = jnp.zeros(self.system.control_dim)
@@ -165,6 +290,9 @@ def rollout(ocp: OCP, control, *, rtol=1e-9, atol=1e-9, saveat=2, max_steps=None
     gradients go through ``nhjax.DiscreteAdjoint`` unless ``adjoint`` says
     otherwise (``max_steps`` None: that adjoint's budget, 4096 steps).
     """
+    check_ocp(ocp, "rollout")
+    if not callable(control):
+        raise ProblemError(f"rollout: control must be callable as u(t, x), got {type(control).__name__}")
     if adjoint is None:
         adjoint = nhjax.DiscreteAdjoint()
     aug = CostAugmented(ocp.system, ocp.running_cost)

@@ -7,27 +7,40 @@ simulations, and hand them to the optimal-control package ``controls``.
 float64 is switched on here, once, for the whole process: every result nhjax
 reports assumes it. So is XLA's compilation of small while loops as one function
 (``_xla_flags.py``: a single trajectory of a small system runs ~2x faster; import
-nhjax before the first JAX computation for it to apply).
+nhjax before the first JAX computation for it to apply), and JAX's persistent
+compilation cache in a user cache directory (``_cache.py``; ``NHJAX_CACHE_DIR``
+moves it, ``NHJAX_CACHE_DIR=0`` turns it off).
 """
 
 import jax as _jax
 
-from . import _xla_flags
+from . import _cache, _xla_flags
 
 _xla_flags.configure()
 _jax.config.update("jax_enable_x64", True)
+_cache.configure()
 
 from . import lie, mechanics, scenes  # noqa: E402
 from .errors import (  # noqa: E402
     ChartSingularityError,
     ConstraintViolationError,
+    ControlError,
+    GroupMembershipError,
     IntegrationError,
     NhjaxError,
+    ParameterError,
+    ProblemError,
+    ProjectionError,
     RegularityError,
+    ResourceError,
+    StateError,
+    TimeSpanError,
 )
 from .integrate import (  # noqa: E402
     BatchError,
+    BatchTrajectory,
     DiscreteAdjoint,
+    ImpactTrajectory,
     RKMK4,
     RKMK45,
     PiecewiseConstant,
@@ -36,16 +49,28 @@ from .integrate import (  # noqa: E402
     Trajectory,
     simulate,
     simulate_batch,
+    simulate_impacts,
+    simulate_impacts_batch,
     stack,
 )
 
 __all__ = [
     "BatchError",
+    "BatchTrajectory",
     "DiscreteAdjoint",
     "ChartSingularityError",
     "ConstraintViolationError",
+    "ControlError",
+    "GroupMembershipError",
+    "ImpactTrajectory",
     "IntegrationError",
     "NhjaxError",
+    "ParameterError",
+    "ProblemError",
+    "ProjectionError",
+    "ResourceError",
+    "StateError",
+    "TimeSpanError",
     "PiecewiseConstant",
     "PiecewiseLinear",
     "RegularityError",
@@ -58,6 +83,8 @@ __all__ = [
     "scenes",
     "simulate",
     "simulate_batch",
+    "simulate_impacts",
+    "simulate_impacts_batch",
     "stack",
 ]
 __version__ = "0.1.0"

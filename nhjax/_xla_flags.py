@@ -8,14 +8,10 @@ runtime's dispatch. XLA also has a pass that compiles a whole while loop into
 one function when the bytes its body touches per iteration are below
 ``xla_cpu_small_while_loop_byte_threshold`` (an ``xla_backend_extra_options``
 entry; XLA's default is 1024 bytes, which almost no ODE loop meets). nhjax raises
-it to 64 KiB. Measured on the falling cat (2 cores, scripts timing jitted calls
-with the setting off and on; 64 KiB and 1 MiB hoist the same loops here): the
-cat's solve with 11 saved times 0.19 -> 0.07 ms, at rtol 1e-10 with 2 saved times
-0.075 -> 0.046 ms; the cat with attitudes 1.8 -> 0.47 ms; a reverse-mode gradient
-by per-step VJPs 3.1 -> 0.35 ms. The lock-step batch chunks (>= 64 members,
-hundreds of KiB per step) stay above the threshold and are not affected; hoisting
-a 512-member chunk (threshold 1 MiB) made it 30 % slower, which is why the
-threshold is not larger.
+it to 64 KiB: one trajectory of a small system then runs as one compiled loop
+(about twice as fast as kernel by kernel), while the lock-step batch chunks,
+whose steps touch hundreds of KiB, stay kernel by kernel: hoisted they ran
+slower (and so do narrow lock-step loops of 4-16 lanes, which the batch avoids).
 
 XLA reads XLA_FLAGS once, when JAX initialises its CPU backend, so the setting only
 takes effect if ``import nhjax`` comes before the first JAX computation of the

@@ -1,10 +1,83 @@
-"""Exceptions raised by nhjax. Each names what went wrong, where, and the fix."""
+"""Exceptions raised by nhjax. Each names what went wrong, where, and the fix.
+
+Every class derives from ``NhjaxError`` and from the built-in exception a caller
+would expect (``ValueError`` for bad values, ``TypeError`` for bad kinds,
+``RuntimeError`` for failed solves, ``MemoryError`` for oversized requests), so
+that existing ``except ValueError`` clauses keep working.
+
+Bad input (checked by ``nhjax._validate`` before any tracing where the values
+are concrete; inside jit/vmap/grad the same checks are ``equinox`` runtime
+errors with the same words, without the values):
+
+* ``ParameterError``: a physical or numerical parameter out of its range
+  (``mass must be positive, got 0``), named by the argument the user passed;
+* ``StateError``: an initial state of the wrong structure, shape or length, or
+  with NaN/inf; ``GroupMembershipError``: a group-valued part (rotation,
+  unit quaternion, SE(2) pose) off its group beyond the tolerance;
+* ``ConstraintViolationError``: an initial state off its constraint manifold;
+  ``ProjectionError``: ``project=True`` could not bring it onto the manifold;
+* ``ControlError``: a control missing, not callable, of the wrong shape or NaN;
+* ``TimeSpanError``: t0, t1 or the saved times empty, reversed or not finite;
+* ``ResourceError``: a request whose memory would exceed what is available;
+* ``ProblemError``: an optimal-control problem that cannot be posed or solved as
+  given (``controls``).
+"""
 
 from __future__ import annotations
+
+__all__ = [
+    "ChartSingularityError",
+    "ConstraintViolationError",
+    "ControlError",
+    "GroupMembershipError",
+    "IntegrationError",
+    "NhjaxError",
+    "ParameterError",
+    "ProblemError",
+    "ProjectionError",
+    "RegularityError",
+    "ResourceError",
+    "StateError",
+    "TimeSpanError",
+]
 
 
 class NhjaxError(Exception):
     """Base class of every error nhjax raises on purpose."""
+
+
+class ParameterError(NhjaxError, ValueError):
+    """A parameter is out of its range (sign, finiteness, shape, allowed values).
+
+    Attributes: ``name`` (the argument as the user passed it), ``value``.
+    """
+
+    def __init__(self, message: str, name: str = "", value=None):
+        self.name, self.value = name, value
+        super().__init__(message)
+
+
+class StateError(NhjaxError, ValueError):
+    """An initial state does not fit the system: wrong structure, shape, length, or NaN/inf.
+
+    Attributes: ``name`` (the argument, e.g. "x0" or "x0[0][1]").
+    """
+
+    def __init__(self, message: str, name: str = "x0"):
+        self.name = name
+        super().__init__(message)
+
+
+class GroupMembershipError(StateError):
+    """A group-valued part of a state (rotation matrix, unit quaternion, SE(2) pose)
+    is off its group by more than the tolerance.
+
+    Attributes: ``name`` (the part, e.g. "x0[0][1]"), ``residual``, ``tol``.
+    """
+
+    def __init__(self, message: str, name: str, residual: float, tol: float):
+        self.residual, self.tol = float(residual), float(tol)
+        super().__init__(message, name)
 
 
 class ConstraintViolationError(NhjaxError, ValueError):
@@ -22,6 +95,49 @@ class ConstraintViolationError(NhjaxError, ValueError):
             "the constraint manifold, or fix the initial state"
         )
         super().__init__(msg + (f" ({hint})." if hint else "."))
+
+
+class ProjectionError(NhjaxError, ValueError):
+    """``project=True`` did not bring the state onto its constraint manifold (or group)
+    within the iteration bound.
+
+    Attributes: ``name`` (the constraint or state part), ``residual`` (reached),
+    ``tol``, ``iterations``.
+    """
+
+    def __init__(self, name: str, residual: float, tol: float, iterations: int, hint: str = ""):
+        self.name, self.residual, self.tol = name, float(residual), float(tol)
+        self.iterations = int(iterations)
+        msg = (
+            f"projecting the initial state onto the constraint manifold did not converge: "
+            f"after {iterations} projections constraint '{name}' still has |residual| = "
+            f"{residual:.3e} > tol = {tol:.1e}. The state is too far from the manifold for the "
+            "Newton projection (or the constraints are singular there): start from a state "
+            "closer to it, e.g. one built by the scene's initial_state()"
+        )
+        super().__init__(msg + (f" ({hint})." if hint else "."))
+
+
+class ControlError(NhjaxError, ValueError, TypeError):
+    """A control is missing where the system needs one, given where it takes none, not
+    callable, of the wrong shape, or not finite."""
+
+
+class TimeSpanError(NhjaxError, ValueError):
+    """t0, t1 or the saved times are not finite, reversed, empty or out of order."""
+
+
+class ResourceError(NhjaxError, MemoryError):
+    """A request (saved times, step budget, batch) would need more memory than is
+    available. Attributes: ``need`` and ``available`` in bytes."""
+
+    def __init__(self, message: str, need: float = 0.0, available: float = 0.0):
+        self.need, self.available = float(need), float(available)
+        super().__init__(message)
+
+
+class ProblemError(NhjaxError, ValueError):
+    """An optimal-control problem that cannot be posed or solved as given."""
 
 
 class IntegrationError(NhjaxError, RuntimeError):

@@ -118,3 +118,27 @@ def test_signals():
     u = nhjax.PiecewiseLinear([0.0, 1.0, 2.0], [0.0, 1.0, 0.0])
     tr = nhjax.simulate(sys, jnp.zeros(2), 2.0, control=u, saveat=2, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(tr.xs[-1], [1.0, 1.0], atol=1e-12)  # x(2) = 1, v(2) = 1
+
+
+def test_new_values_of_the_same_structure_do_not_trace_again(capsys):
+    """simulate() with another initial state, horizon, tolerances or control coefficients
+    reuses the traced and compiled solve (traces counted); the progress bar counts
+    simulated seconds and changes the result only by round-off (a program of its own)."""
+    import importlib
+
+    sim = importlib.import_module("nhjax.integrate.simulate")
+    cat = FallingCat()
+    ctrl = nhjax.Sinusoids([0.0, 0.0], [0.02, 0.01], [1.0, 2.0], [0.0, 0.5])
+    nhjax.simulate(cat, cat.initial_state(0.8, chi_dot=0.5), 2.0, control=ctrl, rtol=1e-8, atol=1e-8)
+    before = sim.TRACES["solve"]
+    other = nhjax.Sinusoids([0.01, 0.0], [0.03, 0.02], [1.5, 0.5], [0.1, 0.2])
+    x0 = cat.initial_state(0.9, chi_dot=0.7)
+    tr = nhjax.simulate(cat, x0, 3.0, control=other, rtol=1e-9, atol=1e-9)
+    assert sim.TRACES["solve"] == before
+    ref = nhjax.simulate(cat, x0, 3.0, control=other, rtol=1e-9, atol=1e-9, saveat=jnp.linspace(0.0, 3.0, 101))
+    np.testing.assert_allclose(tr.xs, ref.xs, rtol=1e-13, atol=1e-13)
+    bar = nhjax.simulate(cat, x0, 3.0, control=other, rtol=1e-9, atol=1e-9, progress=True)
+    np.testing.assert_allclose(bar.xs, tr.xs, rtol=1e-13, atol=1e-14)  # another program: round-off apart
+    assert int(bar.num_steps) == int(tr.num_steps)
+    err = capsys.readouterr().err
+    assert "t = 3 of 3 s" in err

@@ -42,7 +42,25 @@ from nhjax.scenes.falling_cat import FallingCatSmooth
 from ..direct import DirectResult, solve_direct
 from ..parametrize import Chebyshev
 from ..pontryagin import IndirectResult, pmp_residual, solve_pontryagin
-from ..problem import OCP, rollout
+from nhjax import _validate as V
+
+from ..problem import OCP, ProblemError, as_problem_error, rollout
+
+
+def _task_inputs(owner, cat, kind, theta0, turn, windings=None, chart=True):
+    """Entry checks of the somersault tasks: the cat's type, a starting bend inside the
+    chart (0 < theta0 < pi) or any finite one (smooth coordinates), a finite turn."""
+    if not isinstance(cat, kind):
+        raise ProblemError(f"{owner}: cat must be an nhjax.scenes.{kind.__name__}, got {type(cat).__name__}")
+    with as_problem_error():
+        if chart:
+            V.in_range("theta0", theta0, 0.0, np.pi, lo_closed=False, hi_closed=False, owner=owner, shape=(),
+                       what="half bend angle inside Iwai's chart [rad]")
+        else:
+            V.real("theta0", theta0, owner=owner, shape=(), what="half bend angle [rad]")
+        V.real("turn", turn, owner=owner, shape=(), what="turn of the cat about e2 [rad]")
+        if windings is not None:
+            V.real("windings", windings, owner=owner, shape=(), what="turns of the twist chi")
 
 __all__ = [
     "Effort",
@@ -88,6 +106,7 @@ class TerminalTarget(eqx.Module):
 def velocity_somersault_chart(cat: FallingCatKinematic, theta0, turn, T, windings=1) -> OCP:
     """Chart problem: x = (theta, chi, psi), x0 = (theta0, 0, 0); at T: theta = theta0,
     chi = 2 pi windings, psi = turn."""
+    _task_inputs("velocity_somersault_chart", cat, FallingCatKinematic, theta0, turn, windings)
     target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 2 * np.pi * windings, turn)])
     return OCP(cat, jnp.stack([jnp.asarray(theta0, float), 0.0, 0.0]), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
@@ -96,6 +115,7 @@ def velocity_somersault_chart(cat: FallingCatKinematic, theta0, turn, T, winding
 def velocity_somersault_smooth(cat: FallingCatSmooth, theta0, turn, T, j=0) -> OCP:
     """Smooth problem: x = (w1, w2, phi), x0 = (theta0, 0, 0); at T: w = (theta0, 0) and
     phi = turn + 2 pi j."""
+    _task_inputs("velocity_somersault_smooth", cat, FallingCatSmooth, theta0, turn, j, chart=False)
     target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 0.0, turn + 2 * np.pi * j)])
     return OCP(cat, jnp.stack([jnp.asarray(theta0, float), 0.0, 0.0]), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
@@ -103,6 +123,7 @@ def velocity_somersault_smooth(cat: FallingCatSmooth, theta0, turn, T, j=0) -> O
 
 def torque_somersault(cat: FallingCat, theta0, turn, T, windings=1) -> OCP:
     """Rest to rest under torques: x = (theta, chi, psi, theta', chi'); cost int |u|^2."""
+    _task_inputs("torque_somersault", cat, FallingCat, theta0, turn, windings)
     target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 2 * np.pi * windings, turn, 0.0, 0.0)])
     return OCP(cat, cat.initial_state(theta0), T, running_cost=Effort(),
                terminal_constraints=TerminalTarget(target))

@@ -1,14 +1,17 @@
 """Integration: simulate(), Lie-group solvers, trajectories and their diagnostics."""
 
 from .adjoint import DiscreteAdjoint
-from .batch import BatchError, simulate_batch, stack
+from .batch import BatchError, BatchTrajectory, simulate_batch, stack
+from .impacts import ImpactTrajectory, simulate_impacts, simulate_impacts_batch, solve_impacts
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
 from .simulate import Trajectory, simulate
 
 __all__ = [
     "BatchError",
+    "BatchTrajectory",
     "DiscreteAdjoint",
+    "ImpactTrajectory",
     "LieODETerm",
     "PiecewiseConstant",
     "PiecewiseLinear",
@@ -18,5 +21,8 @@ __all__ = [
     "Trajectory",
     "simulate",
     "simulate_batch",
+    "simulate_impacts",
+    "simulate_impacts_batch",
+    "solve_impacts",
     "stack",
 ]

@@ -38,18 +38,16 @@ differentiated input numbers:
   dPhi/dp for a chunk of steps in one vectorised call, and run the recursion as
   n x n matrix-vector products.
 
-Measured on the falling cat (n = 5, 119 steps at rtol 1e-10; benchmarks/
-batch_throughput.py, five runs): a forward solve 0.048-0.076 ms; D = 2:
-tangents 2.3-3.5x it, per-step VJPs 4.5-13x, chunked forward Jacobians
-11-20x, RecursiveCheckpointAdjoint 127-286x; D = 7 (a script): tangents 7-8x,
-VJPs 6-7x. These figures assume XLA compiles small while loops as one
-function (nhjax/_xla_flags.py); kernel by kernel, a step's VJP was ~300
-kernels at ~100 ns each (VJPs 23x, chunked Jacobians 8-9x).
+Which is cheaper depends on D and on the system: the tangents cost about D
+forward solves' worth of JVPs and need no recording, the VJP sweep costs a
+recording forward pass and one VJP per step whatever D is, so "auto" takes the
+tangents for few differentiated numbers (``benchmarks/batch_throughput.py``
+reports the ratios to a forward solve for every mode).
 
 Cost and memory: except in "tangents" mode the forward pass records every
 accepted step (``max_steps`` x state size floats per solve, only when
-differentiated: a forward-only call records nothing); on the cat the recording
-forward pass takes 0.14-0.27 ms against 0.05 ms for a plain one.
+differentiated: a forward-only call records nothing), which makes that pass
+several times dearer than a plain forward solve on small systems.
 
 Limits (checked or documented):
 
@@ -77,7 +75,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
-import numpy as np
 from jax.flatten_util import ravel_pytree
 
 __all__ = ["DiscreteAdjoint"]
@@ -103,10 +100,8 @@ class DiscreteAdjoint(eqx.Module):
         dPhi/dy (n x n) and dPhi/dp (n x D) for a chunk of steps at a time by
         forward / reverse mode, and run the recursion as matrix-vector products.
         "auto": "tangents" while D <= ``max_tangents`` and the step has
-        forward-mode rules, else "vjp". Measured on the falling cat (n = 5, rtol
-        1e-10, benchmarks/batch_throughput.py, five runs): D = 2 tangents 2.3-3.5x
-        a forward solve, per-step VJPs 4.5-13x, chunked forward Jacobians 11-20x;
-        D = 7 (a script timing the initial state too) tangents 7-8x, VJPs 6-7x.
+        forward-mode rules, else "vjp" (``benchmarks/batch_throughput.py`` times
+        every mode against a forward solve).
     max_tangents : the largest D for which "auto" picks "tangents".
     chunk : steps whose Jacobians are evaluated together in one vectorised call
         ("forward"/"reverse"; memory: chunk x n x (n + D) floats).
@@ -178,19 +173,24 @@ def discrete_solve(diff, problem: _Problem, adjoint: DiscreteAdjoint):
 
 @discrete_solve.def_fwd
 def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
-    if _mode(adjoint, diff, perturbed, problem) == "tangents":
-        return _tangent_forward(perturbed, diff, problem)
-    y0, args = diff
-    out, steps = problem.run(y0, args, record=True)
-    return out, (steps, out["t_final"])
+    # the mode travels to the backward pass with the residuals (a str: equinox keeps
+    # non-array residuals static), so "auto"'s forward-rule check is traced once
+    mode = _mode(adjoint, diff, perturbed, problem)
+    if mode == "tangents":
+        out, residuals = _tangent_forward(perturbed, diff, problem)
+    else:
+        y0, args = diff
+        out, steps = problem.run(y0, args, record=True)
+        residuals = (steps, out["t_final"])
+    return out, (mode, residuals)
 
 
 def _mode(adjoint: DiscreteAdjoint, diff, perturbed, problem: _Problem) -> str:
     """The way of forming the backward pass (``DiscreteAdjoint.jacobians``) for this
-    solve; the forward and the backward pass call it with the same arguments."""
+    solve, chosen in the forward pass."""
     if adjoint.jacobians != "auto":
         return adjoint.jacobians
-    D = sum(int(np.prod(jnp.shape(a))) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
+    D = sum(jnp.size(a) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
     if D <= adjoint.max_tangents and _has_forward_rules(problem, *diff):
         return "tangents"
     return "vjp"
@@ -246,11 +246,9 @@ def _tangent_backward(residuals, grad_out, perturbed, diff):
         return ct + jnp.tensordot(g, J, axes=g.ndim)
 
     none = lambda x: x is None  # noqa: E731
-    for g, J in zip(jtu.tree_leaves(grad_out["ys"], is_leaf=none), jtu.tree_leaves(J_ys)):
-        ct = add(ct, g, J, valid)
-    if grad_out["y_end"] is not None:
-        for g, J in zip(jtu.tree_leaves(grad_out["y_end"], is_leaf=none), jtu.tree_leaves(J_end)):
-            ct = add(ct, g, J)
+    for g_tree, J_tree, mask in ((grad_out["ys"], J_ys, valid), (grad_out["y_end"], J_end, None)):
+        for g, J in zip(jtu.tree_leaves(g_tree, is_leaf=none), jtu.tree_leaves(J_tree)):
+            ct = add(ct, g, J, mask)
     ct = add(ct, grad_out["t_final"], J_tf)
     return unravel(ct)
 
@@ -264,7 +262,7 @@ def _zeros_if_none(ct, like):
 
 @discrete_solve.def_bwd
 def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
-    mode = _mode(adjoint, diff, perturbed, problem)
+    mode, residuals = residuals
     if mode == "tangents":
         return _tangent_backward(residuals, grad_out, perturbed, diff)
     (ts_rec, ys_rec), t_final = residuals

@@ -5,35 +5,40 @@ control's parameters (leading axis 0 of the arrays of the batched ones, chosen
 with ``in_axes``). Each member gets its own adaptive step sizes, so it is solved
 to the same tolerance, and to the same result, as a single ``simulate()`` call.
 
-How it runs: the batch is cut into equal chunks of at most ``chunk_size``
-members, and into at least one chunk per worker (whole rounds of ``workers``
-chunks). A chunk is one compiled lock-step solve (``lockstep.py``): all its
-members step together, each with its own step size (finished ones idle), with
-the batch axis last so that the stage arithmetic vectorizes, and float64
-sin/cos evaluated by vectorizable polynomials (``fast_trig.py``; a chunk whose
-arguments leave their exact range, |x| > 8.2e5, is solved again with the C
-library's). When an ``adjoint`` is given the chunk is vmapped
-``diffrax.diffeqsolve`` instead (differentiable; 2-2.5x slower).
-Chunks are dispatched to every local CPU device, or, with a single device, to
-``workers`` threads that run compiled chunks concurrently (XLA releases the
-GIL), so both cores of a laptop work. Memory stays bounded: a chunk holds only
-its working state, and only the requested saved times are kept.
+How it runs: the batch is cut into chunks of at most ``chunk_size`` members, at
+least one per worker. A chunk is one compiled program (``lockstep.py``): it
+checks every member's initial state, then steps ``lanes`` members together, each
+with its own step size, with the member axis last so that the stage arithmetic
+vectorizes, and float64 sin/cos evaluated by vectorizable polynomials
+(``fast_trig.py``; a chunk whose arguments leave their exact range, |x| > 8.2e5,
+is solved again with the C library's). When a member ends, its lane takes the
+next member of the chunk, so members that need many times the steps of others
+do not hold the rest up. When an ``adjoint`` is given the chunk is vmapped
+``diffrax.diffeqsolve`` instead (differentiable, every member stepped until the
+slowest ends). Chunks are dispatched to every local CPU device, or, with a
+single device, to ``workers`` threads that run compiled chunks concurrently
+(XLA releases the GIL). Memory stays bounded: a chunk holds only its working
+state, and only the requested saved times are kept. Values a user varies
+(initial states, parameters, control coefficients, tolerances, times, the
+number of members up to a chunk's capacity) are arguments of the compiled
+chunk: a new batch of the same structure runs without tracing again.
 
-Measured (``benchmarks/batch_throughput.py``, falling cat, rtol 1e-8, 2 cores):
-1024 members 85.5k and 92.8k trajectories/s in two runs, 16384: 108k and 109k,
-against 52k/76k and 49k/68k for a numba-compiled Dormand-Prince in a parallel
-loop in the same runs (vmapped diffrax: 33-39k at 1024).
-
-Errors name the members: bad initial states (NaN, constraint violation, outside
-a chart, ill-posed) and failed solves (max_steps, NaN, chart guard) raise
-``BatchError`` listing member indices, reasons and times.
+Results: a ``BatchTrajectory`` with every member's status ("ok", "guard",
+"max_steps", "non-finite", "solver failure", "bad x0") and reason. By default
+bad initial states (NaN, constraint violation, outside a chart, ill-posed),
+failed solves and members stopped by a chart guard raise ``BatchError`` listing
+member indices, reasons and times; ``on_error="return"`` returns them instead,
+with the other members intact (a sweep's mode).
 """
 
 from __future__ import annotations
 
+import collections
+import dataclasses
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import diffrax
 import equinox as eqx
@@ -42,11 +47,31 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from .._validate import (
+    check_control,
+    check_saveat,
+    check_state,
+    choice,
+    integer,
+    member_failures,
+    member_report,
+    solver_settings,
+    time_span,
+)
 from ..errors import NhjaxError
 from .lockstep import _lanes_last, lockstep_solve, vmap_lanes
-from .simulate import _build_problem, _configure, _drifting_constraints, _finish, _initial_report, _solve
+from .simulate import (
+    Trajectory,
+    _build_problem,
+    _configure,
+    _defines_power,
+    _drifting_constraints,
+    _finish,
+    _reports_accuracy,
+    _solve,
+)
 
-__all__ = ["BatchError", "simulate_batch", "stack"]
+__all__ = ["BatchError", "BatchTrajectory", "STATUSES", "simulate_batch", "stack"]
 
 
 def stack(members):
@@ -112,26 +137,61 @@ def _available_memory_bytes():
     return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
 
 
-@eqx.filter_jit
-def _report_chunk(system, x0, control, t0, project, axes):
-    return eqx.filter_vmap(
-        lambda s, x, c: _initial_report(s, c, x, t0, project), in_axes=axes
+#: Traces of the chunk programs (tests count them: a batch with new values of the same
+#: structure must reuse the compiled program without tracing again).
+TRACES = collections.Counter()
+
+
+def _report_and_configure(system, x0, control, t0, tol, project, options, axes):
+    """Inside a chunk's trace: every member's initial-state report (nhjax._validate's
+    member_report, vmapped: finiteness, group membership, constraints, chart guards,
+    regularity, the control at t0; projected if asked), the members not to solve
+    (``skip``), and the options with the structural defaults resolved (guard names,
+    projection after each step)."""
+    x0p, report = eqx.filter_vmap(
+        lambda s, x, c: member_report(s, c, x, t0, project), in_axes=axes
     )(system, x0, control)
+    skip = ~report["finite"] | ~report["control_finite"]
+    for part in report["group"]:
+        skip = skip | ~(report["group"][part] <= tol) | ~(report["group_det"][part] > 0)
+    for r in report["constraints"].values():
+        skip = skip | ~(r <= tol)
+    for m in report["margins"].values():
+        skip = skip | ~(m > 0)
+    for g in report["guards"].values():
+        skip = skip | ~(g > 0)
+    if options["project_steps"] is None:
+        options = dict(options, project_steps=_drifting_constraints(report["constraints"]))
+    axes = (axes[0], 0, axes[2])  # the checked (maybe projected) x0 has a member axis
+    return x0p, report, skip, tuple(report["guards"]), options, axes
 
 
 @eqx.filter_jit
-def _solve_chunk(system, x0, control, t0, t1, options, guard_names, axes):
+def _solve_chunk(system, x0, control, n, t0, t1, tol, project, options, axes):
+    """One chunk by vmapped diffeqsolve (differentiable; the path when an adjoint is
+    given). Returns (trajectories, initial-state report, False)."""
+    TRACES["vmapped"] += 1
+    del n  # every member is solved (padding too)
+    x0, report, _, guard_names, options, axes = _report_and_configure(system, x0, control, t0, tol, project,
+                                                                      options, axes)
+
     def member(s, x, c):
         solver, controller, adjoint, dt0, static, ts = _configure(s, c, x, t0, t1, guard_names, **options)
         return _solve(s, c, x, t0, t1, ts, solver, controller, adjoint, dt0, static)
 
-    return eqx.filter_vmap(member, in_axes=axes)(system, x0, control)
+    return eqx.filter_vmap(member, in_axes=axes)(system, x0, control), report, jnp.zeros((), bool)
 
 
 @eqx.filter_jit
-def _lockstep_chunk(system, x0, control, t0, t1, options, guard_names, axes, fast_trig):
+def _lockstep_chunk(system, x0, control, n, t0, t1, tol, project, options, axes, fast_trig=True, lanes=None):
     """One chunk by the lock-step integrator (lockstep.py): the same steps per member as
-    _solve_chunk, batch axis last inside. Returns (trajectories, trig_out_of_range)."""
+    _solve_chunk, batch axis last inside, ``lanes`` members at a time; the first ``n``
+    members are solved (the rest is padding), members whose initial state fails the
+    checks are not. Returns (trajectories, initial-state report, trig_out_of_range)."""
+    TRACES["lockstep"] += 1
+    x0, report, skip, guard_names, options, axes = _report_and_configure(system, x0, control, t0, tol,
+                                                                         project, options, axes)
+
     def build(s, x, c):
         solver, controller, _, dt0, st, ts = _configure(s, c, x, t0, t1, guard_names, **options)
         return _build_problem(s, c, x, t0, t1, ts, solver, controller, dt0, st) + (st,)
@@ -142,11 +202,12 @@ def _lockstep_chunk(system, x0, control, t0, t1, options, guard_names, axes, fas
     args = (system if axes[0] is None else _lanes_last(system),
             control if axes[2] is None else _lanes_last(control))
     args_axes = (None if axes[0] is None else -1, None if axes[2] is None else -1)
-    sol, bad = lockstep_solve(problem, y0, args, args_axes, fast_trig=fast_trig)
+    sol, bad = lockstep_solve(problem, y0, args, args_axes, n_members=n, skip=skip, lanes=lanes,
+                              fast_trig=fast_trig)
     traj = eqx.filter_vmap(
         lambda s, x, c, so: _finish(s, c, x, t0, so, static), in_axes=axes + (0,)
     )(system, x0, control, sol)
-    return traj, bad
+    return traj, report, bad
 
 
 #: XLA options for the lock-step chunks (profiled per kernel with jax.profiler, cat,
@@ -166,16 +227,46 @@ def _compile(lowered, options):
         return _compile(lowered, dict(list(options.items())[:-1]))
 
 
-#: Fewest members per chunk for which splitting a batch across workers pays (measured on
-#: the falling cat, rtol 1e-8, 2 cores, idle: B = 1024 as one chunk 14.5k traj/s, as
-#: two 28.8k; B = 128: 14.3k as one, 10.7k as two; B = 512: 17.2k vs 19.7k).
-_MIN_SPLIT = 256
+#: Fewest members per worker for which splitting a batch across workers pays (a smaller
+#: batch runs as one chunk on one worker: the second dispatch costs more than it gains).
+_MIN_SPLIT = 64
+
+#: Most lanes per chunk (members stepped together). A lane costs per step whether or not
+#: its member is still running, so lanes well below the members per chunk let a few long
+#: members finish while the others' lanes are refilled (see _default_lanes).
+_MAX_LANES = 512
 
 
-@eqx.filter_jit
-def _concatenate(results, B):
-    """The chunks' trajectories as one, first B members (one dispatch, not one per leaf)."""
-    return jtu.tree_map(lambda *a: jnp.concatenate(a)[:B], *results)
+def _pow2ceil(n: int) -> int:
+    return 1 << max(0, int(n) - 1).bit_length()
+
+
+def _default_lanes(capacity: int) -> int:
+    """Lanes for a chunk of ``capacity`` members. A chunk's time is about
+    max(total steps / lanes, steps of its longest member) x (cost of one step of all
+    lanes), and a step's cost per lane falls with the lanes (vectorization) down to
+    about 32 lanes. An eighth of the members keeps the first term near the second for
+    step counts that differ many-fold (chosen by timing lane counts on the cat's
+    unequal batch of benchmarks/batch_throughput.py). Up to 128 members, one lane: a
+    loop over one member's numbers is small enough for XLA to compile into one
+    function (nhjax/_xla_flags.py), which beats narrow vectors (4-16 lanes)."""
+    if capacity <= 128:
+        return 1
+    return int(min(_MAX_LANES, max(32, _pow2ceil(capacity // 8))))
+
+
+def _plan(B: int, workers: int, chunk_size: int):
+    """(capacity, members per chunk, chunk starts): chunks of at most ``chunk_size``
+    members, at least one per worker once there are _MIN_SPLIT members per worker, in
+    whole rounds of ``workers``; the capacity is a power of two (or chunk_size), so
+    that batches of other sizes reuse the compiled chunk."""
+    per_worker = -(-B // workers) if B >= workers * _MIN_SPLIT else B
+    capacity = max(1, min(int(chunk_size), _pow2ceil(per_worker)))
+    n_chunks = -(-B // capacity)
+    if n_chunks > workers and n_chunks % workers:
+        n_chunks += workers - n_chunks % workers
+    size = -(-B // n_chunks)
+    return capacity, size, list(range(0, B, size))
 
 
 _POOLS: dict = {}
@@ -203,6 +294,93 @@ def _pool(workers: int) -> ThreadPoolExecutor:
     return _POOLS[workers]
 
 
+#: Member statuses of a batch (``BatchTrajectory.status``), in the order of their codes.
+STATUSES = ("ok", "guard", "max_steps", "non-finite", "solver failure", "bad x0")
+OK, GUARD, MAX_STEPS, NONFINITE, SOLVER, BAD_X0 = range(len(STATUSES))
+
+
+class BatchTrajectory(Trajectory):
+    """The result of ``simulate_batch``: every field of ``Trajectory`` with a leading
+    member axis (``xs[i]`` is member i's saved states), plus per-member statuses.
+
+    status : int array [B], codes into ``STATUSES``: "ok" (reached t1), "guard" (a chart
+        guard stopped it at ``t_final``), "max_steps", "non-finite"
+        (NaN/inf in the state), "solver failure" (e.g. the minimal step size), "bad x0"
+        (the initial state failed the checks and was not solved; ``reasons`` says why).
+    reasons : member -> text, for every member that is not "ok".
+    guard : names of the guards that stopped members ("" if none).
+
+    Masks: ``ok`` (reached t1 without failure), ``stopped`` (by a guard), ``failed``
+    (anything else); ``valid`` marks the saved points of each member that lie before its
+    end and are finite. ``x_final`` is each member's last saved state ([B, n]);
+    ``x_end`` its state at ``t_final``. For a histogram of final states:
+    ``traj.x_final[traj.ok]``.
+    """
+
+    status: Any = None
+    reasons: dict = eqx.field(static=True, default_factory=dict)
+
+    def __len__(self):
+        return int(jnp.shape(self.t_final)[0])
+
+    @property
+    def ok(self):
+        return np.asarray(self.status) == OK
+
+    @property
+    def stopped(self):
+        return np.asarray(self.status) == GUARD
+
+    @property
+    def failed(self):
+        return ~(self.ok | self.stopped)
+
+    @property
+    def valid(self):
+        ts = np.asarray(self.ts)
+        fin = np.ones(ts.shape, bool)
+        for a in jtu.tree_leaves(self.xs):
+            fin &= np.isfinite(np.asarray(a)).reshape(ts.shape + (-1,)).all(-1)
+        return fin & (ts <= np.asarray(self.t_final)[:, None])
+
+    @property
+    def x_final(self):
+        return jtu.tree_map(lambda a: a[:, -1], self.xs)
+
+    def status_names(self):
+        """Each member's status as text."""
+        return [STATUSES[int(s)] for s in np.asarray(self.status)]
+
+    def counts(self) -> dict:
+        """Number of members per status (statuses that occur)."""
+        codes, n = np.unique(np.asarray(self.status), return_counts=True)
+        return {STATUSES[int(c)]: int(k) for c, k in zip(codes, n)}
+
+    def summary(self, show: int = 8) -> str:
+        """How many members reached t1, which did not and why, and the spread of steps
+        and of the accuracy diagnostics over the members that did."""
+        B, ok = len(self), self.ok
+        counts = self.counts()
+        lines = [f"{B} members: " + ", ".join(f"{k} {v}" for k, v in counts.items())]
+        acc = np.asarray(self.num_accepted_steps)
+        if ok.any():
+            a = acc[ok]
+            lines.append(f"  steps (ok members): min {a.min()}, median {int(np.median(a))}, max {a.max()}; "
+                         f"rejected {int(np.asarray(self.num_rejected_steps)[ok].sum())} in all")
+        for label, d in (("constraint", self.constraint_drift), ("invariant", self.invariant_drift)):
+            for k, v in d.items():
+                v = np.asarray(v)[ok]
+                if v.size:
+                    lines.append(f"  {label} '{k}': max |change| over ok members {v.max():.2e} "
+                                 f"(median {np.median(v):.2e})")
+        bad = sorted(self.reasons)
+        for m in bad[:show]:
+            lines.append(f"  member {m}: {self.reasons[m]} at t = {float(self.t_final[m]):.6g}")
+        if len(bad) > show:
+            lines.append(f"  ... and {len(bad) - show} more (traj.reasons)")
+        return "\n".join(lines)
+
+
 def simulate_batch(
     system,
     x0,
@@ -211,7 +389,8 @@ def simulate_batch(
     t0=0.0,
     control=None,
     in_axes=None,
-    chunk_size: int = 1024,
+    chunk_size: int = 8192,
+    lanes: int | None = None,
     workers: int | None = None,
     progress: bool | None = None,
     saveat=2,
@@ -227,25 +406,43 @@ def simulate_batch(
     project_steps: bool | None = None,
     constraint_tol: float = 1e-8,
     on_guard: str = "raise",
+    on_error: str = "raise",
     track_work: bool | None = None,
     diagnostics: bool = True,
-):
-    """Simulate a batch of trajectories; returns a ``Trajectory`` whose arrays have a
-    leading batch axis (``traj.xs[i]`` is member i's saved states).
+) -> BatchTrajectory:
+    """Simulate a batch of trajectories; returns a ``BatchTrajectory`` whose arrays have a
+    leading member axis (``traj.xs[i]`` is member i's saved states) and per-member
+    statuses.
 
     in_axes : dict with keys among "system", "x0", "control" giving 0 (batched along
         axis 0) or None; default ``{"x0": 0}``.
-    chunk_size : at most this many members per compiled chunk (bounds memory; a batch
-        of at least 256 x ``workers`` members is split into at least ``workers`` equal
-        chunks; the last chunk is padded).
+    chunk_size : at most this many members per compiled chunk (bounds memory). A batch
+        of at least 64 x ``workers`` members is split into at least ``workers`` chunks.
+        A chunk's capacity is a power of two (or chunk_size): batches of other sizes up
+        to it reuse the compiled program.
+    lanes : members stepped together in a chunk (default: one up to 128 members per
+        chunk, else an eighth of them, 32 to 512); when one ends, its lane takes the
+        next member.
     workers : concurrent chunks (default: the number of local devices, or 2 threads
         on a single CPU device when the machine has at least 2 cores).
     progress : tqdm bar over chunks (default: on for more than 4 chunks).
     saveat : as in simulate(); default 2 (t0 and t1), the cheap choice for big batches.
+    on_guard : "raise" (BatchError naming the members a chart guard stopped) or "stop".
+    track_work : integrate the work of the inputs for an energy - work report. Default:
+        only when the system has no invariant or constraint of its own to report (the
+        work costs an extra state component in every step).
+    on_error : "raise" (default: BatchError when a member's initial state is bad or its
+        solve failed) or "return" (nothing raises: every member's status is in
+        ``traj.status`` / ``traj.reasons``, with its time in ``traj.t_final``; the other
+        members' results are intact). Members with a bad initial state are not solved.
     Other arguments as ``nhjax.simulate``.
     """
-    if on_guard not in ("raise", "stop"):
-        raise ValueError("on_guard must be 'raise' or 'stop'")
+    owner = "simulate_batch"
+    choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
+    choice("on_error", on_error, ("raise", "return"), owner=owner)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol, owner=owner)
+    t0, t1 = time_span(t0, t1, owner=owner)
+    check_saveat(saveat, t0, t1, owner=owner)
     axes_d = {"x0": 0} if in_axes is None else dict(in_axes)
     unknown = set(axes_d) - {"system", "x0", "control"}
     if unknown:
@@ -253,32 +450,36 @@ def simulate_batch(
     for k, v in axes_d.items():
         if v not in (0, None):
             raise ValueError(f"in_axes['{k}'] must be 0 or None, got {v}")
-    x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
+    x0 = jtu.tree_map(lambda a: np.asarray(a, float), x0)
     axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
     B = _batch_size((system, x0, control), axes)
-    if not float(t1) > float(t0):
-        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
+    if lanes is not None:
+        lanes = integer("lanes", lanes, minimum=1, owner=owner)
+    chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
 
-    # Static checks on one member (shapes, control signature) through simulate's own checks.
+    # Static checks on one member (structure, shapes, control signature); the values of
+    # every member are checked inside the chunks (member_report).
     ex_sys, ex_x0, ex_ctrl = (_take(a, ax, 0) for a, ax in zip((system, x0, control), axes))
-    names = ex_sys.state_names
-    if names and hasattr(ex_x0, "shape") and ex_x0.shape != (len(names),):
-        raise ValueError(
-            f"each member's x0 has shape {ex_x0.shape}; {type(ex_sys).__name__} expects "
-            f"{len(names)} components {names}"
-        )
-    if ex_ctrl is not None and ex_sys.control_dim == 0:
-        raise ValueError(f"{type(ex_sys).__name__} takes no control input")
+    check_state(ex_sys, ex_x0, name="each member's x0", owner=owner)
+    check_control(ex_sys, ex_ctrl, owner=owner)
 
+    if track_work is None:
+        # energy - work is the batch's accuracy report of last resort: the work is an extra
+        # state component (a third more time per step on the cat), so it is tracked by
+        # default only when the system reports no invariant and no constraint of its own
+        track_work = (ex_ctrl is not None and _defines_power(ex_sys)
+                      and not _reports_accuracy(ex_sys, jtu.tree_map(jnp.asarray, ex_x0), jnp.asarray(t0, float)))
+    # Values a user varies enter the compiled chunk as arrays (new values: no new trace).
+    arr = lambda v: None if v is None else jnp.asarray(v, float)  # noqa: E731
     options = dict(
-        saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps,
-        stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
-        project_steps=project_steps, track_work=track_work, progress=False,
-        diagnostics=diagnostics,
+        saveat=saveat if isinstance(saveat, (int, np.integer)) else arr(saveat), solver=solver,
+        rtol=arr(rtol), atol=arr(atol), dt0=arr(dt0), max_steps=max_steps,
+        stepsize_controller=stepsize_controller, jump_ts=arr(jump_ts), adjoint=adjoint,
+        project_steps=project_steps, track_work=track_work, progress=False, diagnostics=diagnostics,
     )
-    t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
+    t0a, t1a, tol = jnp.asarray(t0, float), jnp.asarray(t1, float), jnp.asarray(constraint_tol, float)
     # Memory: the saved states of the whole batch must fit.
-    n_save = saveat if isinstance(saveat, int) else len(np.asarray(saveat))
+    n_save = saveat if isinstance(saveat, (int, np.integer)) else len(np.asarray(saveat))
     state_bytes = sum(np.asarray(a).size for a in jtu.tree_leaves(ex_x0)) * 8
     need = B * n_save * state_bytes * 3  # states, plus invariants/us/work headroom
     avail = _available_memory_bytes()
@@ -294,94 +495,49 @@ def simulate_batch(
     if workers is None:
         workers = len(devices) if len(devices) > 1 else (2 if (os.cpu_count() or 1) >= 2 else 1)
     workers = max(1, int(workers))
-    # At least one chunk per worker once chunks keep >= _MIN_SPLIT members (a batch of
-    # <= chunk_size members as ONE chunk left the second core idle; smaller chunks lose
-    # more to dispatch than the second core gains), then equal chunks of ceil(B / n).
-    n_chunks = max(-(-B // max(1, int(chunk_size))), min(workers, B // _MIN_SPLIT))
-    if n_chunks % workers and n_chunks > workers:  # whole rounds: no worker waits on a last odd chunk
-        n_chunks += workers - n_chunks % workers
-    chunk = -(-B // n_chunks)
-    starts = list(range(0, B, chunk))
+    capacity, size, starts = _plan(B, workers, chunk_size)
     if progress is None:
         progress = len(starts) > 4
-
-    def pad(tree, ax, lo):
-        if ax is None:
-            return tree
-        if lo == 0 and chunk == B:
-            return tree
-        # host-side slices (numpy): an eager jax slice is a dispatch of ~0.15 ms per leaf
-        if lo + chunk <= B:
-            return jtu.tree_map(lambda a: np.asarray(a)[lo:lo + chunk] if hasattr(a, "shape") and a.ndim else a, tree)
-        idx = np.minimum(np.arange(lo, lo + chunk), B - 1)  # pad the last chunk with copies
-        return jtu.tree_map(lambda a: np.asarray(a)[idx] if hasattr(a, "shape") and a.ndim else a, tree)
-
-    def chunk_args(lo, device):
-        args = [pad(a, ax, lo) for a, ax in zip((system, x0, control), axes)]
-        if len(devices) > 1:
-            args = [jax.device_put(a, device) if ax is not None else a for a, ax in zip(args, axes)]
-        return args
-
-    # 1. initial states, all members (the chunks' arguments are kept for the solves)
-    guard_names = None
-    bad = []
-    padded = {}
-    for i, lo in enumerate(starts):
-        s, x, c = padded[i] = chunk_args(lo, devices[i % len(devices)])
-        _, finite, residuals, guards, margins = _report_chunk(s, x, c, t0a, project, axes)
-        finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
-        guard_names = tuple(guards)
-        if project_steps is None:
-            project_steps = _drifting_constraints(residuals)
-            options["project_steps"] = project_steps
-        n = min(chunk, B - lo)
-        checks = [(~np.asarray(finite[:n], bool), lambda j: "x0 contains NaN or inf")]
-        checks += [(np.asarray(r[:n]) > constraint_tol,
-                    lambda j, k=k, r=r: f"constraint '{k}' violated by {r[j]:.2e} (pass project=True)")
-                   for k, r in residuals.items()]
-        checks += [(~(np.asarray(m[:n]) > 0), lambda j, k=k: f"regularity condition '{k}' fails")
-                   for k, m in margins.items()]
-        checks += [(np.asarray(g[:n]) <= 0, lambda j, k=k: f"outside the chart ('{k}')")
-                   for k, g in guards.items()]
-        failing = np.zeros(n, bool)
-        for mask, _ in checks:
-            failing |= mask
-        for j in np.nonzero(failing)[0]:
-            reason = next(why(j) for mask, why in checks if mask[j])  # the first check that fails
-            bad.append((lo + int(j), reason))
-    if bad:
-        m, r = zip(*bad)
-        raise BatchError("bad initial states", list(m), list(r), [float(t0)] * len(m))
-
-    # 2. the solves, chunk by chunk, on all cores
-    lock = threading.Lock()
-    results = [None] * len(starts)
-
-    def chunk_inputs(i):
-        s, x, c = padded.pop(i)
-        if project:
-            x = eqx.filter_vmap(lambda ss, xx: ss.project(t0a, xx), in_axes=(axes[0], 0))(s, x)
-        return s, x, c
 
     # The lock-step integrator unless the batch is to be differentiated (an adjoint was
     # given): vmapped diffrax then. Its float64 sin/cos are vectorized (fast_trig.py); a
     # chunk whose arguments left their exact range is re-run with the library ones.
     lockstep = adjoint is None
+    n_lanes = None
     if lockstep:
-        def call(fn, s, x, c, fast):
-            return fn(s, x, c, t0a, t1a, options, guard_names, axes, fast)
+        n_lanes = min(capacity, int(lanes) if lanes is not None else _default_lanes(capacity))
+        chunk_fn = _lockstep_chunk
+
+        def call(fn, s, x, c, n, fast):
+            return fn(s, x, c, n, t0a, t1a, tol, project, options, axes, fast, n_lanes)
     else:
-        def call(fn, s, x, c, fast):
-            return fn(s, x, c, t0a, t1a, options, guard_names, axes), False
-    chunk_fn = _lockstep_chunk if lockstep else _solve_chunk
+        chunk_fn = _solve_chunk
+
+        def call(fn, s, x, c, n, fast):
+            return fn(s, x, c, n, t0a, t1a, tol, project, options, axes)
+
+    def chunk_args(i):
+        """Chunk i's members, padded to the capacity with copies of its last member
+        (host-side numpy: an eager jax slice is a dispatch of ~0.15 ms per leaf)."""
+        lo = starts[i]
+        n = min(size, B - lo)
+        idx = np.minimum(np.arange(lo, lo + capacity), lo + n - 1)
+        out = []
+        for a, ax in zip((system, x0, control), axes):
+            if ax is not None and not (lo == 0 and n == capacity == B):
+                a = jtu.tree_map(lambda v: np.asarray(v)[idx] if hasattr(v, "shape") and v.ndim else v, a)
+                if len(devices) > 1:
+                    a = jax.device_put(a, devices[i % len(devices)])
+            out.append(a)
+        return (*out, np.int32(n))
 
     # Compile once, ahead of time, before any concurrency (every chunk has the same
     # shapes); with several devices, jit compiles per device on first use instead.
-    solve, first_inputs = chunk_fn, None
+    solve = chunk_fn
+    first = chunk_args(0)
     if len(devices) == 1:
-        first_inputs = chunk_inputs(0)  # kept for run(0): padded (and projected) once
-        extra = (True,) if lockstep else ()
-        all_args = (*first_inputs, t0a, t1a, options, guard_names, axes, *extra)
+        all_args = (*first[:3], jnp.asarray(first[3]), t0a, t1a, tol, project, options, axes)
+        all_args += (True, n_lanes) if lockstep else ()
         key = _compile_key(chunk_fn, all_args)
         solve = _COMPILED.get(key) if key is not None else None
         if solve is None:
@@ -391,16 +547,17 @@ def simulate_batch(
                     _COMPILED.pop(next(iter(_COMPILED)))
                 _COMPILED[key] = solve
 
+    lock = threading.Lock()
+    results = [None] * len(starts)
+
     def run(i):
-        s, x, c = first_inputs if (i == 0 and first_inputs is not None) else chunk_inputs(i)
-        out, bad = call(solve, s, x, c, True)
-        if bool(bad):  # some sin/cos argument beyond fast_trig.LIMIT: exact library functions
-            out, _ = call(chunk_fn, s, x, c, False)
-        out = jax.block_until_ready(out)
-        if len(devices) > 1:  # gather on the first device (concatenated below)
-            out = jax.device_put(out, devices[0])
+        s, x, c, n = first if i == 0 else chunk_args(i)
+        out, report, bad = call(solve, s, x, c, n, True)
+        if lockstep and bool(bad):  # some sin/cos argument beyond fast_trig.LIMIT: library functions
+            out, report, _ = call(chunk_fn, s, x, c, n, False)
+        out, report = jax.device_get((out, report))  # numpy (joined and cut on the host)
         with lock:
-            results[i] = out
+            results[i] = (out, report, int(n))
         return i
 
     bar = None
@@ -408,45 +565,91 @@ def simulate_batch(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=B, desc="nhjax batch", unit="traj")
+
     def done(i):
         if bar is not None:
-            bar.update(min(chunk, B - starts[i]))
+            bar.update(results[i][2])
 
     if len(devices) > 1:
         done(run(0))  # compiles (on device 0) before any concurrency
-    first = 1 if len(devices) > 1 else 0
-    if workers > 1 and len(starts) - first > 1:
-        for i in _pool(workers).map(run, range(first, len(starts))):
+    rest = range(1 if len(devices) > 1 else 0, len(starts))
+    if workers > 1 and len(rest) > 1:
+        for i in _pool(workers).map(run, rest):
             done(i)
     else:
-        for i in range(first, len(starts)):
+        for i in rest:
             done(run(i))
     if bar is not None:
         bar.close()
 
-    if len(results) == 1 and chunk == B:
-        traj = results[0]
-    else:
-        traj = _concatenate(results, B)
-    _check_results(traj, guard_names, on_guard)
+    # join the chunks' members (padding dropped) on the host, then back to jax arrays
+    def join(*parts):
+        return np.concatenate([p[:n] for p, (_, _, n) in zip(parts, results)])
+
+    traj, report = jtu.tree_map(join, *[(r[0], r[1]) for r in results])
+    traj = jax.device_put(traj)
+    return _statuses(traj, report, system, axes, on_guard, on_error, float(t0), float(constraint_tol), project)
+
+
+def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol, project):
+    """Per-member statuses and reasons; raises BatchError as on_guard/on_error ask."""
+    B = len(report["finite"])
+    result = np.asarray(traj.result._value)
+    status = np.full(B, OK, np.int8)
+    reasons = dict(member_failures(report, constraint_tol=tol, project=project))
+    bad_x0 = np.zeros(B, bool)
+    bad_x0[list(reasons)] = True
+    status[bad_x0] = BAD_X0
+    ev = int(diffrax.RESULTS.event_occurred._value)
+    ok_code = int(diffrax.RESULTS.successful._value)
+    solved = ~bad_x0
+    fin = np.ones(B, bool)
+    for a in jtu.tree_leaves(traj.x_end):
+        fin &= np.isfinite(np.asarray(a)).reshape(B, -1).all(1)
+    stopped = solved & (result == ev)
+    status[stopped] = GUARD
+    maxed = solved & (result == int(diffrax.RESULTS.max_steps_reached._value))
+    status[maxed] = MAX_STEPS
+    other = solved & (result != ok_code) & (result != ev) & ~maxed
+    status[other] = SOLVER
+    status[solved & ~fin & ((result == ok_code) | (result == ev))] = NONFINITE
+    guard_names = tuple(report["guards"])
+    used = set()
+    x_end = jax.device_get(traj.x_end)
+    for j in np.nonzero(stopped)[0]:
+        name = _guard_of(_take(system, axes[0], j), guard_names, jtu.tree_map(lambda a: a[j], x_end))
+        used.add(name)
+        reasons[int(j)] = f"stopped by chart guard '{name}'"
+    for j in np.nonzero(maxed)[0]:
+        reasons[int(j)] = "max_steps exhausted (or NaN/inf ahead)"
+    for j in np.nonzero(other)[0]:
+        reasons[int(j)] = ("minimum step size reached" if result[j] == int(diffrax.RESULTS.dt_min_reached._value)
+                           else f"solver failure (diffrax code {int(result[j])})")
+    for j in np.nonzero(status == NONFINITE)[0]:
+        reasons[int(j)] = "state became NaN/inf"
+    traj = BatchTrajectory(**{f.name: getattr(traj, f.name) for f in dataclasses.fields(Trajectory)}
+                           | dict(guard=", ".join(sorted(used)), status=status, reasons=reasons))
+    if on_error == "return":
+        return traj
+    t_final = np.asarray(traj.t_final)
+
+    def fail(what, mask):
+        members = np.nonzero(mask)[0].tolist()
+        raise BatchError(what, members, [reasons[m] for m in members],
+                         [t0 if status[m] == BAD_X0 else float(t_final[m]) for m in members], traj)
+
+    if bad_x0.any():
+        fail("bad initial states", bad_x0)
+    if (status >= MAX_STEPS).any():
+        fail("failed solves", status >= MAX_STEPS)
+    if stopped.any() and on_guard == "raise":
+        fail("a chart guard stopped the solve (pass on_guard='stop' to keep these members)", stopped)
     return traj
 
 
-def _check_results(traj, guard_names, on_guard):
-    result, t_final = jax.device_get((traj.result._value, traj.t_final))
-    ok = int(diffrax.RESULTS.successful._value)
-    ev = int(diffrax.RESULTS.event_occurred._value)
-    failed = np.nonzero((result != ok) & (result != ev))[0]
-    if failed.size:
-        known = {
-            int(diffrax.RESULTS.max_steps_reached._value): "max_steps exhausted (or NaN/inf ahead)",
-            int(diffrax.RESULTS.dt_min_reached._value): "minimum step size reached",
-        }
-        reasons = [known.get(int(result[i]), f"solver failure (diffrax code {int(result[i])})") for i in failed]
-        raise BatchError("failed solves", failed.tolist(), reasons, t_final[failed].tolist(), traj)
-    stopped = np.nonzero(result == ev)[0]
-    if stopped.size and on_guard == "raise":
-        raise BatchError(
-            "a chart guard stopped the solve (pass on_guard='stop' to keep these members)",
-            stopped.tolist(), [f"guard of {guard_names}" for _ in stopped], t_final[stopped].tolist(), traj,
-        )
+def _guard_of(system, names, x):
+    """The guard that stopped a member: the one closest to zero at its final state."""
+    if len(names) == 1:
+        return names[0]
+    g = system.guards(x)
+    return min(names, key=lambda n: abs(float(g[n])))

@@ -1,34 +1,39 @@
 """Lock-step batch integrator: many solves of one problem, stepped together, batch axis last.
 
-``simulate_batch`` used to ``vmap`` ``diffrax.diffeqsolve``. On the CPU that costs
-about 0.7 us per member per step on the falling cat (4096 members, one thread),
-no better than a scalar compiled loop, for three reasons found by profiling
-(perf + XLA's optimized HLO, benchmarks/batch_throughput.py case):
+Why not ``vmap`` of ``diffrax.diffeqsolve``: on the CPU it is no faster per
+member-step than a scalar compiled loop, for four reasons (found by profiling:
+perf, XLA's optimized HLO, per-kernel traces with jax.profiler):
 
 1. the batch axis leads (``[B, n]``), so each vector-field fusion builds its
    ``[B, n]`` output by a concatenate along the short minor axis: XLA's loop
    emitter evaluates it element by element, recomputes shared subexpressions
    for each of the n components and does not vectorize;
-2. float64 ``sin``/``cos`` are scalar C-library calls per element (40 % of the
-   time), see ``fast_trig``;
-3. the vmapped while loop carries and selects ~60 buffers per step (diffrax's
-   whole loop state: saving, events, progress meter, dense-output bookkeeping).
-
-Per kernel (jax.profiler trace of the cat chunk, 1024 members, after the changes
-below): the six right-hand-side fusions take about half of the loop, the error
-norm 6 %, the rest is selects and bookkeeping; a guard's dense output is
-recomputed after the loop instead of being stored every step (that store was
-13 %), and batch.py compiles the chunks without YNNPACK fusions (the per-member
-error norm had become a YNNPACK dot, 10-25 %).
+2. float64 ``sin``/``cos`` are scalar C-library calls per element, see
+   ``fast_trig``;
+3. the vmapped while loop carries and selects diffrax's whole loop state
+   (saving, events, progress meter, dense-output bookkeeping) every step;
+4. a vmapped loop runs until its slowest member ends: members that need a tenth
+   of its steps idle for the rest.
 
 Here the loop is ours and holds only what a step needs; every array keeps the
-batch axis last (``[n, B]``: each state component is a contiguous ``[B]``
-vector, so the stage arithmetic fuses and vectorizes); the pieces of a step are
-diffrax's own, vmapped over the members: ``solver.step``,
+member axis last (``[n, L]``: each state component is a contiguous vector over
+the L lanes, so the stage arithmetic fuses and vectorizes); the pieces of a
+step are diffrax's own, vmapped over the lanes: ``solver.step``,
 ``controller.init``/``adapt_step_size``, the solver's dense interpolation, the
 event's root find. So each member takes exactly the steps a single
 ``simulate()`` takes, and saves, stops at guards and fails the same way
 (``tests/test_batch.py`` compares them member by member).
+
+Lanes and the queue: every member's start (initial step, controller and FSAL
+state: diffeqsolve's initialisation) is computed for the whole chunk at once;
+the members wait in a queue, those with the smallest first step first (they
+tend to need the most steps, and a long member started late would leave the
+other lanes idle at the end); L lanes step together; a member that ends (t1
+reached, guard, failure, step budget) stays in its lane until R = L/16 lanes
+are idle, then every idle lane writes its member's results into the member's
+own slot and takes the next member of the queue. The stepping loop carries only
+the lanes, so it stays small; a guard's dense output is recomputed after the
+loop for the members that stopped, instead of being stored every step.
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
 (the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
@@ -121,37 +126,81 @@ def _clip_to_end(tprev, tnext, t1, t1_clip_floor, keep_step):
     return jnp.where(clip, tclip, tnext)
 
 
-def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
-    """Solve ``problem`` (an ``adjoint._Problem`` whose array leaves carry a trailing
-    batch axis) from ``y0`` (leaves ``[..., B]``) with ``args`` batched along their last
-    axis where ``args_axes`` says -1 (None: shared). Returns ``(out, bad)``: ``out`` is
-    ``_Problem.run``'s dict with a leading batch axis on every leaf; ``bad`` is True when
-    a replaced sin/cos saw an argument beyond ``fast_trig.LIMIT`` (re-run with
-    ``fast_trig=False``)."""
-    B = jtu.tree_leaves(problem.t1)[0].shape[-1]
+def _take(tree, idx):
+    """Array leaves ``[..., M]`` -> ``[..., K]`` at member indices ``idx`` ``[K]`` (clipped)."""
+    return jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
+
+
+def _put(tree, idx, vals):
+    """Array leaves ``[..., M]`` with ``vals`` ``[..., K]`` written at ``idx`` ``[K]``;
+    out-of-range indices are dropped (indices must be unique: callers give the dropped
+    entries distinct out-of-range values)."""
+    return jtu.tree_map(lambda a, v: a.at[..., idx].set(v, mode="drop", unique_indices=True), tree, vals)
+
+
+def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, lanes=None, fast_trig=True):
+    """Solve the members of ``problem`` (an ``adjoint._Problem`` whose array leaves carry a
+    trailing member axis of size M) from ``y0`` (leaves ``[..., M]``) with ``args``
+    batched along their last axis where ``args_axes`` says -1 (None: shared).
+
+    ``lanes`` (L <= M, default M) members are stepped at once; when a member ends, its
+    lane takes the next member of the queue (members ``0 .. n_members - 1`` in order,
+    except those marked in ``skip``, which are not solved). Returns ``(out, bad)``:
+    ``out`` is ``_Problem.run``'s dict with a leading member axis on every leaf; ``bad``
+    is True when a replaced sin/cos saw an argument beyond ``fast_trig.LIMIT`` (re-run
+    with ``fast_trig=False``)."""
+    M = jtu.tree_leaves(problem.t1)[0].shape[-1]
+    L = M if lanes is None else max(1, min(int(lanes), M))
+    R = max(1, L // 16)  # idle lanes that trigger a refill (which fills every idle lane)
     solver, term, event, sub = problem.solver, problem.term, problem.event, problem.sub
     ends_only = sub.ts is None
     successful = diffrax.RESULTS.successful._value
     ok_event = diffrax.RESULTS.event_occurred._value
+    max_steps = problem.max_steps
+    args_axes = tuple(args_axes)
+    member = jnp.arange(M)
 
-    def vm(f, *lanes):
-        axes = (-1, tuple(args_axes)) + (-1,) * len(lanes)
-        return vmap_lanes(f, axes)(problem, args, *lanes)
+    not_run = member >= (M if n_members is None else n_members)
+    if skip is not None:
+        not_run = not_run | skip
+    n_run = jnp.sum(~not_run).astype(jnp.int32)
+
+    def vm(f, pr, a, *per_member):
+        """``f(problem, args, *xs)`` per member; every array argument has a trailing member
+        axis (any width), args where args_axes says -1."""
+        return vmap_lanes(f, (-1, args_axes) + (-1,) * len(per_member))(pr, a, *per_member)
+
+    # diffeqsolve's controller set-up (time runs forwards), once per member
+    problem = eqx.tree_at(lambda p: p.controller, problem,
+                          vm(lambda pr, a: pr.controller.wrap(1), problem, args))
+    pr_arr, pr_static = eqx.partition(problem, eqx.is_array)
+    args_parts = [eqx.partition(a, eqx.is_array) if ax is not None else (None, a)
+                  for a, ax in zip(args, args_axes)]
+    args_arr = tuple(p[0] for p in args_parts)
+
+    def problem_of(arr):
+        return eqx.combine(arr, pr_static)
+
+    def args_of(arr):
+        return tuple(a if ax is None else eqx.combine(d, p[1])
+                     for d, ax, p, a in zip(arr, args_axes, args_parts, args))
 
     # The step itself: nhjax's Runge-Kutta-Munthe-Kaas solvers are written leaf by leaf
-    # with elementwise stage arithmetic, so they run on whole [..., B] arrays (per-member
+    # with elementwise stage arithmetic, so they run on whole [..., L] arrays (per-member
     # step sizes broadcast along the trailing axis): only the vector field, the group
     # operations and a projection are vmapped. That keeps every state component a
-    # contiguous [B] vector through the stages. Other diffrax solvers: vmapped per member.
+    # contiguous [L] vector through the stages. Other diffrax solvers: vmapped per member.
     inner = solver.solver if isinstance(solver, ProjectedSolver) else solver
     batch_level = isinstance(inner, _AbstractRKMK)
     if batch_level:
         spaces_b = jtu.tree_map(lambda sp: sp if isinstance(sp, Euclidean) else _LanesSpace(sp),
                                 term.spaces, is_leaf=is_space)
-        term_b = LieODETerm(vmap_lanes(term.vector_field, (-1, -1, tuple(args_axes))), spaces_b)
+        term_b = LieODETerm(vmap_lanes(term.vector_field, (-1, -1, args_axes)), spaces_b)
         solver_b = solver
         if isinstance(solver, ProjectedSolver):
-            solver_b = ProjectedSolver(inner, vmap_lanes(solver.project, (-1, -1, tuple(args_axes))))
+            solver_b = ProjectedSolver(inner, vmap_lanes(solver.project, (-1, -1, args_axes)))
+
+    dense_static = []  # the dense output's non-array part, recorded by take_step's first trace
 
     def interpolation(t0_, t1_, dense_arrays):
         # per member; dense_arrays: the array part of the step's dense_info
@@ -160,40 +209,13 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
             d = dict(d, spaces=term.spaces)
         return solver.interpolation_cls(t0=t0_, t1=t1_, **d)
 
-    dense_static = []  # the dense output's non-array part, recorded by take_step's first trace
-
-    # -- initial state (diffeqsolve's initialisation, per member) --
-    def init(pr, a, y):
-        ctrl = pr.controller.wrap(1)
-        tnext, cstate = ctrl.init(term, pr.t0, pr.t1, y, pr.dt0, a, solver.func, solver.error_order(term))
-        tnext = jnp.minimum(tnext, pr.t1)
-        sstate = solver.init(term, pr.t0, tnext, y, a)
-        floor = _prev_ulps(pr.t1, 100)
-        ev = None if event is None else event.cond_fn(pr.t0, y, a)
-        first = sub.fn(pr.t0, y, a) if ends_only else None
-        as_arrays = lambda tree: jtu.tree_map(jnp.asarray, tree)  # noqa: E731 (Python scalars too)
-        return ctrl, tnext, as_arrays(cstate), as_arrays(sstate), floor, ev, first
-
-    ctrl_b, tnext, cstate, sstate, t1_floor, ev0, first = vm(init, y0)
-    problem = eqx.tree_at(lambda p: p.controller, problem, ctrl_b)
-    zeros_i = jnp.zeros(B, jnp.int32)
-    carry = dict(
-        y=y0, tprev=problem.t0 + 0.0 * tnext, tnext=tnext, sstate=sstate, cstate=cstate,
-        made_jump=jnp.zeros(B, bool), result=jnp.full(B, successful, jnp.int32),
-        num_steps=zeros_i, num_accepted=zeros_i, num_rejected=zeros_i,
-    )
-    if not ends_only:
-        n_ts = sub.ts.shape[0]
-        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), y0)
-        carry["ys"] = jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape, jnp.inf, e.dtype), ex)
-        carry["save_index"] = zeros_i
-    def take_step(y, tprev, tnext, sstate, made_jump):
-        """One step of every member: (y1, y_err, dense arrays, solver state, result)."""
+    def take_step(pr, a, y, tprev, tnext, sstate, made_jump):
+        """One step of every lane: (y1, y_err, dense arrays, solver state, result)."""
         if batch_level:
-            out = solver_b.step(term_b, tprev, tnext, y, args, sstate, made_jump)
+            out = solver_b.step(term_b, tprev, tnext, y, a, sstate, made_jump)
         else:
-            out = vm(lambda pr, a, yy, tp, tn, ss, mj: solver.step(term, tp, tn, yy, a, ss, mj),
-                     y, tprev, tnext, sstate, made_jump)
+            out = vm(lambda pr_, a_, yy, tp, tn, ss, mj: solver.step(term, tp, tn, yy, a_, ss, mj),
+                     pr, a, y, tprev, tnext, sstate, made_jump)
         y1, y_err, dense, s1, sres = out
         dense_arr, dstat = eqx.partition(dense, eqx.is_array)
         if not dense_static:
@@ -201,18 +223,104 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
         sres = jnp.broadcast_to(sres._value, tprev.shape)
         return y1, y_err, dense_arr, s1, sres
 
+    # -- a member's start (diffeqsolve's initialisation) --
+    def init(pr, a, y):
+        tnext, cstate = pr.controller.init(term, pr.t0, pr.t1, y, pr.dt0, a, solver.func,
+                                           solver.error_order(term))
+        tnext = jnp.minimum(tnext, pr.t1)
+        sstate = solver.init(term, pr.t0, tnext, y, a)
+        ev = None if event is None else event.cond_fn(pr.t0, y, a)
+        as_arrays = lambda tree: jtu.tree_map(jnp.asarray, tree)  # noqa: E731 (Python scalars too)
+        return tnext, as_arrays(cstate), as_arrays(sstate), _prev_ulps(pr.t1, 100), ev
+
+    # Per-member results, filled in as members end (solved members overwrite these).
+    t0_m = problem.t0 + jnp.zeros(M)
+    zeros_m = jnp.zeros(M, jnp.int32)
+    out = dict(t_final=t0_m, y_end=y0, num_steps=zeros_m, num_accepted=zeros_m, num_rejected=zeros_m,
+               result=jnp.full(M, diffrax.RESULTS.internal_error._value, jnp.int32))
+    if not ends_only:
+        n_ts = sub.ts.shape[0]
+        out["save_index"] = zeros_m
     if event is not None:
-        carry["ev_value"] = ev0
-        carry["ev_mask"] = jnp.zeros(B, bool)
-        carry["ev_tprev"] = carry["tprev"]
-        carry["ev_tnext"] = tnext
-        # the step in which a guard fired, to be taken again for its dense output after
-        # the loop (storing every step's dense output cost 13 % of the loop)
-        carry["ev_y"], carry["ev_sstate"], carry["ev_made_jump"] = y0, sstate, carry["made_jump"]
-    lane = jnp.arange(B)
+        out.update(ev_mask=jnp.zeros(M, bool), ev_tprev=t0_m, ev_tnext=t0_m, ev_y=y0,
+                   ev_made_jump=jnp.zeros(M, bool))
+
+    # Every member's start, computed once for the chunk (vectorized); lanes gather it.
+    starts = vm(init, problem, args, y0)
+    # The queue: members to solve (skipped members and padding beyond n_members at the
+    # back), those with the smallest first step first: they tend to need the most steps,
+    # and a long member started early does not leave the lanes idle at the end.
+    h0 = starts[0] - problem.t0
+    order = jnp.lexsort((jnp.where(jnp.isnan(h0), jnp.inf, h0), not_run)).astype(jnp.int32)
+
+    # Lanes: a member index (M: empty), that member's problem and args, its solver state.
+    def start_values(new):
+        """Lane values of members ``new`` ``[K]`` at their start (diffeqsolve's initialisation)."""
+        pr, a, y = _take(pr_arr, new), _take(args_arr, new), _take(y0, new)
+        tnext, cstate, sstate, floor, ev = _take(starts, new)
+        t0 = problem_of(pr).t0 + 0.0 * tnext
+        f, zi = jnp.zeros(new.shape, bool), jnp.zeros(new.shape, jnp.int32)
+        vals = dict(mem=new, pr=pr, a=a, y=y, tprev=t0, tnext=tnext, sstate=sstate, cstate=cstate,
+                    floor=floor, made_jump=f, result=jnp.full(new.shape, successful, jnp.int32),
+                    num_steps=zi, num_accepted=zi, num_rejected=zi)
+        if not ends_only:
+            vals["save_index"] = zi
+        if event is not None:
+            vals.update(ev_value=ev, ev_mask=f, ev_tprev=t0, ev_tnext=tnext, ev_y=y, ev_sstate=sstate,
+                        ev_made_jump=f)
+        return vals
+
+    lane = jnp.arange(L)
+    c = start_values(order[lane])  # the first L members of the queue (L <= M)
+    c["mem"] = jnp.where(lane < n_run, c["mem"], M)
+    c["next"] = jnp.minimum(n_run, L)
+    if event is not None:
+        out["ev_sstate"] = jtu.tree_map(lambda s: jnp.zeros(s.shape[:-1] + (M,), s.dtype), c["sstate"])
+    if not ends_only:  # the saved states, written by member index as the lanes pass save times
+        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
+        c["ys"] = jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape, jnp.inf, e.dtype), ex)
 
     def active_of(c):
-        return (c["tprev"] < problem.t1) & (c["result"] == successful)
+        t1 = problem_of(c["pr"]).t1
+        return ((c["mem"] < M) & (c["tprev"] < t1) & (c["result"] == successful)
+                & (c["num_steps"] < max_steps))
+
+    def retire(c, out, lanes_idx):
+        """Write the lanes ``lanes_idx`` (L: none) into their members' results; empty them."""
+        li = jnp.minimum(lanes_idx, L - 1)
+        has = (lanes_idx < L) & (c["mem"][li] < M)
+        mem = jnp.where(has, c["mem"][li], M + jnp.arange(lanes_idx.shape[0]))
+        g = lambda k: _take(c[k], li)  # noqa: E731
+        running = (g("tprev") < problem_of(g("pr")).t1) & (g("result") == successful)
+        vals = dict(t_final=g("tprev"), y_end=g("y"), num_steps=g("num_steps"),
+                    num_accepted=g("num_accepted"), num_rejected=g("num_rejected"),
+                    result=jnp.where(running, diffrax.RESULTS.max_steps_reached._value, g("result")))
+        if not ends_only:
+            vals["save_index"] = g("save_index")
+        if event is not None:
+            vals.update(ev_mask=g("ev_mask"), ev_tprev=g("ev_tprev"), ev_tnext=g("ev_tnext"),
+                        ev_y=g("ev_y"), ev_sstate=g("ev_sstate"), ev_made_jump=g("ev_made_jump"))
+        out = dict(out)
+        out.update(_put({k: out[k] for k in vals}, mem, vals))
+        return dict(c, mem=c["mem"].at[jnp.where(has, li, L)].set(M, mode="drop")), out
+
+    def refill(state):
+        """Retire the idle lanes and start the next members of the queue in them."""
+        c, out = state
+        idle = ~active_of(c)
+        sel = jnp.nonzero(idle, size=L, fill_value=L)[0]
+        c, out = retire(c, out, sel)
+        q = c["next"] + lane
+        valid = (sel < L) & (q < n_run)
+        vals = start_values(order[jnp.minimum(q, M - 1)])
+        dest = jnp.where(valid, sel, L + lane)
+        c = dict(c)
+        c.update(_put({k: c[k] for k in vals}, dest, vals))
+        c["next"] = c["next"] + jnp.sum(valid).astype(jnp.int32)
+        return c, out
+
+    def want_refill(c):
+        return (c["next"] < n_run) & (jnp.sum(~active_of(c)) >= R)
 
     # -- step-size control (per member) --
     def member_adapt(pr, a, y, y1, y_err, tprev, tnext, cstate):
@@ -222,11 +330,15 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
         return keep, tp, tn, jnp.asarray(mj), c1, cres._value
 
     def body(c):
+        """One step of every active lane (finished and empty lanes keep their state)."""
         active = active_of(c)
-        y1, y_err, dense, s1, sres = take_step(c["y"], c["tprev"], c["tnext"], c["sstate"], c["made_jump"])
-        keep, tp, tn, mj, c1, cres = vm(member_adapt, c["y"], y1, y_err, c["tprev"], c["tnext"], c["cstate"])
-        tp = jnp.minimum(tp, problem.t1)
-        tn = _clip_to_end(tp, tn, problem.t1, t1_floor, keep)
+        pr, a = problem_of(c["pr"]), args_of(c["a"])
+        y1, y_err, dense, s1, sres = take_step(pr, a, c["y"], c["tprev"], c["tnext"], c["sstate"],
+                                               c["made_jump"])
+        keep, tp, tn, mj, c1, cres = vm(member_adapt, pr, a, c["y"], y1, y_err, c["tprev"], c["tnext"],
+                                        c["cstate"])
+        tp = jnp.minimum(tp, pr.t1)
+        tn = _clip_to_end(tp, tn, pr.t1, c["floor"], keep)
         new = dict(c)
         new["y"] = _where(keep, y1, c["y"])
         new["sstate"] = _where(keep, s1, c["sstate"])
@@ -241,8 +353,8 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
         new["num_rejected"] = c["num_rejected"] + ~keep
 
         if not ends_only:  # every save time passed by an accepted step, by dense output
-            def save_time(idx):  # each member's next save time
-                return jnp.take_along_axis(problem.sub.ts, jnp.minimum(idx, n_ts - 1)[None], 0)[0]
+            def save_time(idx):  # each lane's next save time
+                return jnp.take_along_axis(pr.sub.ts, jnp.minimum(idx, n_ts - 1)[None], 0)[0]
 
             def pending(sc):
                 idx = sc[0]
@@ -253,13 +365,15 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
                 pend = pending(sc)
                 t_s = save_time(idx)
 
-                def value(pr, a, t0_, t1_, d, t):
-                    return sub.fn(t, interpolation(t0_, t1_, d).evaluate(t), a)
+                def value(pr_, a_, t0_, t1_, d, t):
+                    return sub.fn(t, interpolation(t0_, t1_, d).evaluate(t), a_)
 
-                vals = vm(value, c["tprev"], c["tnext"], dense, t_s)
+                vals = vm(value, pr, a, c["tprev"], c["tnext"], dense, t_s)
                 row = jnp.where(pend, idx, n_ts)  # out of range: dropped
+                col = jnp.where(pend, c["mem"], M + lane)  # unique, also where dropped
                 ys = jtu.tree_map(
-                    lambda buf, v: buf.at[row, ..., lane].set(jnp.moveaxis(v, -1, 0), mode="drop", unique_indices=True),
+                    lambda buf, v: buf.at[row, ..., col].set(jnp.moveaxis(v, -1, 0), mode="drop",
+                                                             unique_indices=True),
                     ys, vals)
                 return idx + pend, ys
 
@@ -268,44 +382,50 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
             new["save_index"], new["ys"] = idx, ys
 
         if event is not None:
-            val = vm(lambda pr, a, t, yy: event.cond_fn(t, yy, a), tp, new["y"])
+            val = vm(lambda pr_, a_, t, yy: event.cond_fn(t, yy, a_), pr, a, tp, new["y"])
             mask = jnp.sign(c["ev_value"]) != jnp.sign(val)
             res = jnp.where(mask, ok_event, res)
             new["ev_value"], new["ev_mask"] = val, mask
             new["ev_tprev"], new["ev_tnext"] = c["tprev"], c["tnext"]
             new["ev_y"], new["ev_sstate"], new["ev_made_jump"] = c["y"], c["sstate"], c["made_jump"]
         new["result"] = res
-        # members that had finished keep their state (the save buffer was only written
-        # where a member was active)
-        return {k: v if k in ("ys", "save_index") else _where(active, v, c[k]) for k, v in new.items()}
+        lane_keys = [k for k in new if k not in ("ys", "save_index", "next", "mem", "pr", "a")]
+        for k in lane_keys:
+            new[k] = _where(active, new[k], c[k])
+        return new
 
-    max_steps = problem.max_steps
-    if fast_trig:
-        step_fn = with_fast_trig(body, carry)
+    step_fn = with_fast_trig(body, c) if fast_trig else (lambda c: (body(c), jnp.zeros((), bool)))
 
-        def loop_body(lc):
-            i, c, bad = lc
-            c, b = step_fn(c)
-            return i + 1, c, bad | b
-    else:
-        def loop_body(lc):
-            i, c, bad = lc
-            return i + 1, body(c), bad
+    def steps(lc):
+        c, bad = lc
+        c, b = step_fn(c)
+        return c, bad | b
 
-    def loop_cond(lc):
-        i, c, bad = lc
-        return (i < max_steps) & jnp.any(active_of(c)) & ~bad
+    def run_lanes(state):
+        """Step the lanes until enough of them are idle to be refilled (or, once the queue
+        is empty, until all are done), then refill. The stepping loop carries only the
+        lanes (and the saved states, if any), so for small lane counts XLA compiles it
+        into one function (nhjax/_xla_flags.py) instead of dispatching each kernel."""
+        c, out, bad = state
+        c, bad = jax.lax.while_loop(lambda lc: jnp.any(active_of(lc[0])) & ~want_refill(lc[0]) & ~lc[1],
+                                    steps, (c, bad))
+        c, out = jax.lax.cond(want_refill(c), refill, lambda st: st, (c, out))
+        return c, out, bad
 
-    _, c, bad = jax.lax.while_loop(loop_cond, loop_body, (jnp.zeros((), jnp.int32), carry, jnp.zeros((), bool)))
-    result = jnp.where(active_of(c), diffrax.RESULTS.max_steps_reached._value, c["result"])
-    tfinal, yfinal = c["tprev"], c["y"]
+    def queue_left(state):
+        c, _, bad = state
+        return (jnp.any(active_of(c)) | (c["next"] < n_run)) & ~bad
+
+    c, out, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out, jnp.zeros((), bool)))
+    c, o = retire(c, out, lane)
+    tfinal, yfinal, result = o["t_final"], o["y_end"], o["result"]
 
     event_mask = None
     if event is not None:
-        event_mask = c["ev_mask"]
-
+        event_mask = o["ev_mask"]
+        # the event step of each member that had one, taken again for its dense output
         def root_find(_):
-            def member(pr, a, m, tprev, tnext, d, y, nsteps):
+            def member_root(pr, a, m, tprev, tnext, d, y, nsteps):
                 interp = interpolation(tprev, tnext, d)
 
                 def fn(t, _):
@@ -317,10 +437,10 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
                 y_at = jtu.tree_map(lambda u, v: jnp.where(nsteps == 0, u, v), y, interp.evaluate(sol.value))
                 return sol.value, y_at, ok, diffrax.RESULTS.promote(sol.result)._value
 
-            _, _, ev_dense, _, _ = take_step(c["ev_y"], c["ev_tprev"], c["ev_tnext"], c["ev_sstate"],
-                                             c["ev_made_jump"])
-            t_ev, y_ev, ok, code = vm(member, event_mask, c["ev_tprev"], c["ev_tnext"], ev_dense,
-                                      yfinal, c["num_steps"])
+            _, _, ev_dense, _, _ = take_step(problem, args, o["ev_y"], o["ev_tprev"], o["ev_tnext"],
+                                             o["ev_sstate"], o["ev_made_jump"])
+            t_ev, y_ev, ok, code = vm(member_root, problem, args, event_mask, o["ev_tprev"], o["ev_tnext"],
+                                      ev_dense, yfinal, o["num_steps"])
             return (jnp.where(event_mask, t_ev, tfinal), _where(event_mask, y_ev, yfinal),
                     jnp.where(event_mask & ~ok, code, result))
 
@@ -328,12 +448,13 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
                                               lambda _: (tfinal, yfinal, result), None)
 
     if ends_only:
-        last = vm(lambda pr, a, t, yy: sub.fn(t, yy, a), tfinal, yfinal)
-        ts = jnp.stack([problem.t0 + 0.0 * tfinal, tfinal])
+        first = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
+        last = vm(lambda pr, a, t, yy: sub.fn(t, yy, a), problem, args, tfinal, yfinal)
+        ts = jnp.stack([t0_m, tfinal])
         ys = jtu.tree_map(lambda u, v: jnp.stack([u, v]), first, last)
     else:
         rows = jnp.arange(n_ts)[:, None]
-        ts = jnp.where(rows < c["save_index"][None], problem.sub.ts, jnp.inf)
+        ts = jnp.where(rows < o["save_index"][None], problem.sub.ts, jnp.inf)
         ys = c["ys"]
         if event is not None:  # nothing saved after a guard's event time
             late = ts > tfinal[None]
@@ -343,8 +464,8 @@ def lockstep_solve(problem, y0, args, args_axes, fast_trig=True):
                                     jnp.inf, a), ys)
     out = _lanes_first(dict(
         ts=ts, ys=ys, t_final=tfinal, y_end=yfinal,
-        num_steps=c["num_steps"], num_accepted_steps=c["num_accepted"],
-        num_rejected_steps=c["num_rejected"], event_mask=event_mask,
+        num_steps=o["num_steps"], num_accepted_steps=o["num_accepted"],
+        num_rejected_steps=o["num_rejected"], event_mask=event_mask,
     ))
-    out["result"] = eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, result)  # [B]
+    out["result"] = eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, result)  # [M]
     return out, bad

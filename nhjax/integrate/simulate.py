@@ -20,6 +20,8 @@ become ``equinox.error_if`` runtime errors (same wording, without the time).
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import dataclasses
 from typing import Any
 
@@ -31,15 +33,29 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 
+from .._validate import (
+    check_control,
+    check_saveat,
+    check_state,
+    choice,
+    member_report,
+    raise_for_report,
+    runtime_checks,
+    simulate_memory,
+    solver_settings,
+    time_span,
+)
 from ..errors import (
     ChartSingularityError,
-    ConstraintViolationError,
     IntegrationError,
-    RegularityError,
+    ParameterError,
+    StateError,
+    TimeSpanError,
 )
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
 from .adjoint import DiscreteAdjoint, _Problem, _save_state, discrete_solve
+from .progress import SimulatedTimeMeter
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
 
@@ -114,6 +130,10 @@ class _Static:
     project_steps: bool = False
     ends_only: bool = False
     diagnostics: bool = True
+    # diffrax's own runtime checks (equinox error_if: host callbacks) in the program; off
+    # for eager calls, whose inputs simulate() has checked, so that the program has no
+    # host callback and JAX's persistent cache keeps it
+    runtime_checks: bool = True
 
 
 def _is_traced(*trees) -> bool:
@@ -195,7 +215,7 @@ def _warm_pool():
     return _WARM_POOL
 
 
-def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static: _Static):
+def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static: _Static, show=False):
     """The diffrax problem of one solve: term, solver (projected if asked), controller,
     guard event, what to save. Returns (problem, y0); y0 carries the work if tracked."""
     track = static.track_work
@@ -233,9 +253,9 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
             # there), so the direction is known: flip=True also keeps vmapped solves valid
             cond_fn=cond, root_finder=optx.Bisection(rtol=1e-13, atol=1e-13, flip=True)
         )
-    progress_meter = (
-        diffrax.TqdmProgressMeter() if static.progress else diffrax.NoProgressMeter()
-    )
+    progress_meter = diffrax.NoProgressMeter()
+    if static.progress:  # the bar is in the program; `show` (an array) switches it on
+        progress_meter = SimulatedTimeMeter(jnp.asarray(show, bool), t0, t1)
     problem = _Problem(term=term, solver=solver, controller=controller, event=event, sub=sub,
                        progress_meter=progress_meter, t0=t0, t1=t1, dt0=dt0,
                        max_steps=static.max_steps)
@@ -275,93 +295,87 @@ def _finish(system, control, x0, t0, sol, static: _Static):
     )
 
 
+#: Traces of the solve program (tests count them: a solve with new values of the same
+#: structure must not trace again).
+TRACES = collections.Counter()
+
+
 @eqx.filter_jit
-def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static):
-    problem, y0 = _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static)
-    if isinstance(adjoint, DiscreteAdjoint):
-        sol = discrete_solve((y0, (system, control)), problem, adjoint)
-    else:
-        sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
+def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
+    TRACES["solve"] += 1
+    problem, y0 = _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static, show)
+    with _error_checks(static.runtime_checks):
+        if isinstance(adjoint, DiscreteAdjoint):
+            sol = discrete_solve((y0, (system, control)), problem, adjoint)
+        else:
+            sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
     return _finish(system, control, x0, t0, sol, static)
 
 
+@contextlib.contextmanager
+def _error_checks(on: bool):
+    """equinox's runtime errors as configured (on) or off while a solve is traced.
+    (equinox reads its EQX_ON_ERROR setting from this module global at trace time.)"""
+    from equinox import _errors
+
+    if on or not hasattr(_errors, "EQX_ON_ERROR"):
+        yield
+        return
+    old = _errors.EQX_ON_ERROR
+    _errors.EQX_ON_ERROR = "off"
+    try:
+        yield
+    finally:
+        _errors.EQX_ON_ERROR = old
+
+
 def _save_times(saveat, t0, t1):
+    check_saveat(saveat, t0, t1)
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)):
-        if saveat < 2:
-            raise ValueError(f"saveat={saveat}: ask for at least 2 saved times (t0 and t1)")
         return jnp.linspace(t0, t1, int(saveat))
     ts = jnp.asarray(saveat, dtype=float)
-    if ts.ndim != 1 or ts.shape[0] == 0:
-        raise ValueError("saveat must be an int (number of equally spaced times) or a 1-D array of times")
     if not _is_traced(ts, t0, t1):
         tsn = np.asarray(ts)
         if np.any(np.diff(tsn) < 0) or tsn[0] < float(t0) - 1e-12 or tsn[-1] > float(t1) + 1e-12:
-            raise ValueError(
-                f"saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]"
+            raise TimeSpanError(
+                f"simulate: saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]; "
+                f"got {tsn.size} times from {tsn.min():.6g} to {tsn.max():.6g}"
             )
     return ts
 
 
+#: member_report compiled (one program per system structure, control and projection flag)
+_member_report = eqx.filter_jit(member_report)
+
+
 @eqx.filter_jit
 def _initial_report(system, control, x0, t0, project):
-    """Everything simulate() checks about x0, in one compiled call.
+    """Everything simulate() checks about x0, in one compiled call: the legacy view
+    (x0, finite, constraint residuals, guards, margins) of ``nhjax._validate.member_report``,
+    which also checks group membership and the control's value (use that per member).
 
     Shape errors of the control are raised while tracing (they depend on
     structure only); the numbers come back as a small pytree.
     """
-    if control is not None:
-        shape = jnp.shape(control(t0, x0))
-        if shape != (system.control_dim,):
-            raise ValueError(
-                f"control(t, x) returned shape {shape}; {type(system).__name__} has "
-                f"{system.control_dim} inputs"
-            )
-    if project:
-        x0 = system.project(t0, x0)
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in jtu.tree_leaves(x0)]))
-    residuals = {k: _max_abs(v) for k, v in system.constraints(t0, x0).items()}
-    # the regularity margins are a check, not an output: out of the derivative (their SVD
-    # has no forward-mode rule, which would make every gradient through x0 fail)
-    margins = dict(system.regularity(t0, jax.lax.stop_gradient(x0)))
-    return x0, finite, residuals, dict(system.guards(x0)), margins
+    x0, r = member_report(system, control, x0, t0, project)
+    return x0, r["finite"], r["constraints"], r["guards"], r["margins"]
 
 
 def _check_inputs(system, control, x0, t0, constraint_tol, project):
-    """Validate shapes, finiteness and constraints of x0; returns x0 (maybe projected)."""
-    names = system.state_names
-    if names and hasattr(x0, "shape") and x0.shape != (len(names),):
-        raise ValueError(
-            f"x0 has shape {x0.shape}; {type(system).__name__} expects {len(names)} "
-            f"components {names}"
-        )
-    if control is not None:
-        if system.control_dim == 0:
-            raise ValueError(f"{type(system).__name__} takes no control input")
-        if not callable(control):
-            raise TypeError("control must be callable as control(t, x) -> array of inputs")
-    x0p, finite, residuals, guards, margins = _initial_report(
-        system, control, x0, jnp.asarray(t0, float), project
-    )
-    guard_names, constrained = tuple(guards), _drifting_constraints(residuals)
-    if _is_traced(x0, system, control, finite):  # under an outer jit everything is traced
+    """Validate structure, shapes, finiteness, group membership and constraints of x0
+    (``nhjax._validate``); returns (x0 (maybe projected), guard names, whether the
+    system has constraints to project onto after each step). Concrete values raise the
+    named errors of ``nhjax.errors``; traced ones get the same words as runtime errors."""
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    x0p, report = _member_report(system, control, x0, jnp.asarray(t0, float), project)
+    guard_names, constrained = tuple(report["guards"]), _drifting_constraints(report["constraints"])
+    if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
+        x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
         return x0p, guard_names, constrained
-    finite, residuals, guards, margins = jax.device_get((finite, residuals, guards, margins))
-    if not finite:
-        raise ValueError("initial state x0 contains NaN or inf")
-    for name, res in residuals.items():
-        if res > constraint_tol:
-            raise ConstraintViolationError(name, float(res), constraint_tol)
-    for name, g in guards.items():
-        if g <= 0:
-            raise ChartSingularityError(
-                name, float(t0), "the initial state is already outside the chart. "
-                + system.guard_hints.get(name, "")
-            )
-    for name, margin in margins.items():  # after the guards: outside a chart, say that first
-        if not margin > 0:
-            raise RegularityError(name, float(margin), system.regularity_hints.get(name, ""))
+    raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
     return x0p, guard_names, constrained
 
 
@@ -389,11 +403,16 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
             f"{type(solver).__name__} would integrate them in ambient coordinates and "
             "drift off the group. Use nhjax.RKMK45() (adaptive) or nhjax.RKMK4() (fixed step)."
         )
+    if track_work is None:
+        track_work = control is not None and _defines_power(system)
     if stepsize_controller is None:
         if isinstance(solver, diffrax.AbstractAdaptiveSolver):
-            # Tolerances as arrays: changing them does not recompile.
+            # Tolerances as arrays: changing them does not recompile. The work of the
+            # inputs, when tracked, stays out of the error norm: the steps (and so the
+            # states) are those of the same solve without it.
             stepsize_controller = diffrax.PIDController(
-                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts
+                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts,
+                norm=_state_norm if track_work else optx.rms_norm,
             )
         else:
             if dt0 is None:
@@ -414,8 +433,6 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
     elif max_steps is None:
         max_steps = 100_000
 
-    if track_work is None:
-        track_work = control is not None and _defines_power(system)
     static = _Static(
         track_work=bool(track_work),
         guard_names=guard_names,
@@ -491,39 +508,59 @@ def simulate(
     constraint_tol : largest constraint residual accepted in x0.
     on_guard : "raise" (ChartSingularityError) or "stop" (return the trajectory
         up to where a chart guard crossed zero; ``traj.guard`` names it).
-    track_work : integrate the work of the inputs and report energy - work
-        (default: whenever a control is given and the system defines power()).
-    progress : show a tqdm progress bar over simulated time.
+    track_work : integrate the work of the inputs and report energy - work (default:
+        whenever a control is given and the system defines power()). The work stays
+        out of the step-size control, so the states are those of the solve without it.
+    progress : show a progress bar over simulated time (tqdm; in notebooks a widget).
+        The bar is a host callback in the solve's loop, so the first call with it
+        compiles a second program (kept for later calls in the process; JAX's
+        persistent cache does not keep programs with host callbacks).
     diagnostics : compute invariants, constraint residuals and the controls at the
         saved times (False: a smaller program, e.g. inside an optimizer).
     """
-    if on_guard not in ("raise", "stop"):
-        raise ValueError("on_guard must be 'raise' or 'stop'")
+    choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
+    if not isinstance(system, AbstractSystem):
+        raise ParameterError(
+            f"simulate: system must be an nhjax system (nhjax.mechanics.AbstractSystem, e.g. a scene or a "
+            f"Lagrangian), got {type(system).__name__}", "system", system)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol)
+    t0, t1 = time_span(t0, t1, owner="simulate")
+    check_saveat(saveat, t0, t1, owner="simulate")
     # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
     traced = _is_traced(x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
-    if not traced and not float(t1) > float(t0):
-        raise ValueError(f"t1 = {float(t1)} must be greater than t0 = {float(t0)}")
-    x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
+    try:
+        x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"simulate: x0 must be an array (or a pytree of arrays) of real numbers: {e}") from None
+    simulate_memory(system, x0, saveat, stores_steps=traced and isinstance(adjoint, DiscreteAdjoint),
+                    max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
     x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
     if project_steps is None:
         project_steps = constrained
 
+    # The progress bar is a host callback in the loop: a program with it is never kept in
+    # JAX's persistent cache and XLA does not compile its small loops as one function,
+    # so it is compiled in only when asked for (once per structure and process).
     solver, stepsize_controller, adjoint, dt0, static, ts = _configure(
         system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
         atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
         jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
-        progress=progress, diagnostics=diagnostics,
+        progress=bool(progress), diagnostics=diagnostics,
     )
     t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
+    show = np.asarray(bool(progress))
+    if not traced:  # inputs checked above: diffrax's runtime checks stay out of the program
+        static = dataclasses.replace(static, runtime_checks=False)
     if traced or not static.diagnostics:
-        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static)
+        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
+                      show)
     else:
         # Eager call: the diagnostics are a second program, compiled in a thread while
         # the solve compiles (XLA releases the GIL), then run on the solution.
         track = static.track_work
         warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
         core = dataclasses.replace(static, diagnostics=False)
-        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core)
+        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core, show)
         warm.result()
         invariants, drift, cons, us = _diagnose_jit(
             system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track)
@@ -532,6 +569,11 @@ def simulate(
     if traced:
         return _runtime_checks(traj, static, on_guard)
     return _eager_checks(traj, system, control, static, on_guard)
+
+
+def _state_norm(y):
+    """RMS norm of the state part of (state, work): the error norm when work is tracked."""
+    return optx.rms_norm(y[0])
 
 
 def _is_explicit(solver):
@@ -550,6 +592,27 @@ def _drifting_constraints(residuals) -> bool:
 
 def _defines_power(system) -> bool:
     return type(system).power is not AbstractSystem.power
+
+
+_REPORTS: dict = {}
+
+
+def _reports_accuracy(system, x0, t0) -> bool:
+    """Whether the system declares invariants (conserved under every control) or
+    constraints, whose drift simulate() reports (a structural question: traced once per
+    system structure and state shape)."""
+    key = (jtu.tree_structure(system), jtu.tree_map(jnp.shape, x0))
+    try:
+        return _REPORTS[key]
+    except (KeyError, TypeError):
+        pass
+    inv, cons = eqx.filter_eval_shape(lambda s, x, t: (s.invariants(x), s.constraints(t, x)), system, x0, t0)
+    out = bool(inv) or bool(cons)
+    try:
+        _REPORTS[key] = out
+    except TypeError:  # unhashable static fields: no caching
+        pass
+    return out
 
 
 _GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"

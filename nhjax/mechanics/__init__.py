@@ -1,6 +1,7 @@
 """Mechanics: the system interface, constrained Lagrangians by autodiff, rigid bodies,
 reduction by symmetry (``reduction``)."""
 
+from .impacts import WithContacts, affine_projector, contact_dynamics, impact_velocities
 from .lagrangian import ConstrainedLagrangian, Lagrangian
 from .lie_lagrangian import LieLagrangian
 from . import reduction
@@ -18,8 +19,12 @@ __all__ = [
     "ReducedKinematic",
     "ReducedSystem",
     "RigidBody",
+    "WithContacts",
+    "affine_projector",
     "body_angular_velocity",
+    "contact_dynamics",
     "curvature_integral",
     "cylinder_inertia",
+    "impact_velocities",
     "reduction",
 ]

@@ -42,6 +42,19 @@ from .system import AbstractSystem
 __all__ = ["ConstrainedLagrangian", "Lagrangian"]
 
 
+def baumgarte_pair(owner, gains):
+    """(alpha, beta) [1/s]: two finite, non-negative Baumgarte gains."""
+    from .. import _validate as Vd
+
+    try:
+        a, b = gains
+    except (TypeError, ValueError):
+        raise Vd.ParameterError(f"{owner}: baumgarte must be a pair (alpha, beta) of gains [1/s], got {gains!r}",
+                                "baumgarte", gains) from None
+    return tuple(float(Vd.positive(n, v, allow_zero=True, owner=owner, as_float=True, shape=(), what="Baumgarte gain [1/s]"))
+                 for n, v in (("baumgarte[0]", a), ("baumgarte[1]", b)))
+
+
 class ConstrainedLagrangian(AbstractSystem):
     """Abstract constrained Lagrangian system; subclasses define the energies.
 
@@ -223,11 +236,23 @@ class Lagrangian(ConstrainedLagrangian):
         control_dim=0,
         baumgarte=(0.0, 0.0),
     ):
-        self.n = int(n)
-        self.T, self.V, self.force = T, V, force
-        self.vel_c, self.pos_c = velocity_constraints, position_constraints
-        self.n_controls = int(control_dim)
-        self.baumgarte = tuple(baumgarte)
+        from .. import _validate as Vd
+
+        owner = "Lagrangian"
+        self.n = Vd.integer("n", n, minimum=1, owner=owner, what="number of generalized coordinates")
+        self.T = Vd.function("T", T, owner=owner, signature="T(q, qd) -> kinetic energy")
+        self.V = Vd.function("V", V, owner=owner, signature="V(q) -> potential energy", optional=True)
+        self.force = Vd.function("force", force, owner=owner, signature="force(t, q, qd, u) -> (n,)", optional=True)
+        self.vel_c = Vd.function("velocity_constraints", velocity_constraints, owner=owner,
+                                 signature="velocity_constraints(t, q, qd) -> (m,)", optional=True)
+        self.pos_c = Vd.function("position_constraints", position_constraints, owner=owner,
+                                 signature="position_constraints(t, q) -> (k,)", optional=True)
+        self.n_controls = Vd.integer("control_dim", control_dim, minimum=0, owner=owner, what="number of inputs")
+        if self.n_controls and force is None:
+            raise Vd.ParameterError(
+                f"{owner}: control_dim={self.n_controls} but no force(t, q, qd, u) to feed the inputs into; "
+                "pass force=... or control_dim=0", "control_dim", control_dim)
+        self.baumgarte = baumgarte_pair(owner, baumgarte)
 
     @property
     def control_dim(self):  # type: ignore[override]

@@ -19,6 +19,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..lie import so3
 
@@ -35,6 +36,11 @@ def cylinder_inertia(mass, length, radius):
 
     I_transverse = m (3 r^2 + L^2) / 12,  I_axial = m r^2 / 2   [kg m^2].
     """
+    from .. import _validate as Vd
+
+    mass = Vd.positive("mass", mass, owner="cylinder_inertia", what="[kg]")
+    length = Vd.positive("length", length, owner="cylinder_inertia", what="[m]")
+    radius = Vd.positive("radius", radius, owner="cylinder_inertia", what="[m]")
     return mass * (3 * radius**2 + length**2) / 12.0, mass * radius**2 / 2.0
 
 
@@ -44,9 +50,24 @@ class RigidBody(eqx.Module):
     mass: jax.Array
     inertia: jax.Array
 
+    def __check_init__(self):
+        from .. import _validate as Vd
+
+        if Vd.is_traced(self.mass, self.inertia):
+            return
+        Vd.positive("mass", self.mass, owner="RigidBody", what="[kg]")
+        if jnp.shape(self.inertia)[-2:] != (3, 3):
+            raise Vd.ParameterError(f"RigidBody: inertia must be a 3x3 tensor [kg m^2], got shape "
+                                    f"{jnp.shape(self.inertia)}", "inertia", self.inertia)
+        for I in np.asarray(self.inertia).reshape(-1, 3, 3):
+            Vd.inertia_tensor("inertia", I, owner="RigidBody")
+
     @classmethod
     def solid_cylinder(cls, mass, length, radius, axis: int = 1):
         """Solid cylinder with its symmetry axis along body axis ``axis``."""
+        from .. import _validate as Vd
+
+        axis = Vd.choice("axis", axis, (0, 1, 2), owner="RigidBody.solid_cylinder")
         it, ia = cylinder_inertia(mass, length, radius)
         diag = jnp.full((3,), it).at[axis].set(ia)
         return cls(jnp.asarray(mass, float), jnp.diag(diag))
@@ -77,6 +98,14 @@ class MultibodyKinetics(eqx.Module):
 
     bodies: tuple[RigidBody, ...]
     poses: Callable
+
+    def __check_init__(self):
+        from .. import _validate as Vd
+
+        if not all(isinstance(b, RigidBody) for b in self.bodies):
+            raise Vd.ParameterError("MultibodyKinetics: bodies must be a tuple of nhjax.mechanics.RigidBody",
+                                    "bodies", self.bodies)
+        Vd.function("poses", self.poses, owner="MultibodyKinetics", signature="poses(q) -> (Rs (k,3,3), rs (k,3))")
 
     def _poses_and_rates(self, q, qd):
         (Rs, rs), (Rds, rds) = jax.jvp(self.poses, (q,), (qd,))

@@ -14,7 +14,11 @@ make every simulation self-checking:
   ``ChartSingularityError``) where one crosses zero;
 * ``spaces``: for states with group-valued parts, the ``nhjax.lie`` spaces that
   tell the Lie-group solvers how each part moves;
-* ``project(t, x)``: map a nearby state onto the constraint manifold;
+* ``project(t, x)``: map a nearby state onto the constraint manifold
+  (``project_converged`` repeats it until the residual is within tolerance and
+  reports the residual reached);
+* ``requires_control``: True for systems whose vector field needs the inputs
+  (velocity-controlled ones): simulate() refuses to run them without a control;
 * ``regularity(t, x)``: margins of the conditions that make the equations well
   posed (e.g. full-rank constraints), checked at x0.
 """
@@ -24,6 +28,9 @@ from __future__ import annotations
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
 
 from ..lie.spaces import Euclidean
 
@@ -37,6 +44,8 @@ class AbstractSystem(eqx.Module):
     state_names: ClassVar[tuple[str, ...]] = ()
     # Number of control inputs (0: the system takes none).
     control_dim: ClassVar[int] = 0
+    # Whether vector_field needs u (velocity-controlled systems; others read u=None as zero).
+    requires_control: ClassVar[bool] = False
     # Advice shown when a guard of this name trips.
     guard_hints: ClassVar[dict[str, str]] = {}
     # Explanation shown when a regularity margin of this name is not positive.
@@ -73,6 +82,31 @@ class AbstractSystem(eqx.Module):
 
     def project(self, t, x):
         return x
+
+    def constraint_residual(self, t, x):
+        """Largest |residual| over all ``constraints(t, x)`` (0 without constraints)."""
+        vals = [jnp.max(jnp.abs(jnp.asarray(v))) for v in self.constraints(t, x).values() if jnp.size(v)]
+        return jnp.max(jnp.stack(vals)) if vals else jnp.zeros(())
+
+    def project_converged(self, t, x, tol=1e-14, max_iter=10):
+        """``project`` repeated until the largest constraint residual is <= tol (1 + max|x|),
+        at most ``max_iter`` times: returns (x, residual reached, rounds used).
+
+        One round of a Newton projection from far away (a quaternion of norm 2) need not
+        reach the manifold; rounds stop changing x once it is within tolerance. A
+        fixed-length loop (lax.fori_loop), so jit, vmap and reverse-mode grad pass.
+        """
+        scale = lambda y: 1.0 + jnp.max(jnp.stack([jnp.max(jnp.abs(a)) for a in jtu.tree_leaves(y)]))  # noqa: E731
+
+        def body(_, carry):
+            y, r, n = carry
+            go = r > tol * scale(y)
+            y_new = self.project(t, y)
+            y = jtu.tree_map(lambda a, b: jnp.where(go, b, a), y, y_new)
+            return y, jnp.where(go, self.constraint_residual(t, y), r), n + go.astype(jnp.int32)
+
+        r0 = self.constraint_residual(t, x)
+        return jax.lax.fori_loop(0, max_iter, body, (x, r0, jnp.zeros((), jnp.int32)))
 
     def regularity(self, t, x) -> dict:
         """Margins (name -> scalar, positive = fine) of conditions without which the

@@ -10,13 +10,16 @@ from .falling_cat import (
     ShapeLoopTorque,
 )
 from .ball_on_platter import BallOnPlatter
+from .bouncing_ball import BouncingBall
 from .falling_cat_reduced import FallingCatReduced
+from .moving_circle import ParticleInMovingCircle
 from .nbody import NBodyCat, ThreeBodyCat
 from .planar_chain import PlanarChain, PlanarChainUnreduced
 from .rolling_disk import RollingDisk, RollingDiskQuaternion
 from .shell_suslov_hinge import ShellWithSuslovHinge, ShellWithSuslovHingeZeroMomentum
 from .shell_with_top import ShellWithTopLagrangian, ShellWithTopReduced
 from .spherical_robot import ShellWithTop
+from .sphere_wall import RollingSphereWall
 from .skate import Skate, SkateSE2
 from .suslov_bundle import SuslovBundle
 from .two_wheeled_cart import TwoWheeledCart
@@ -45,10 +48,14 @@ REGISTRY = {
     "ShellWithSuslovHinge": (ShellWithSuslovHinge, "shell with an inner body on a nonholonomic hinge, (2.4) (seed 003, sec. 2)"),
     "ShellWithSuslovHingeZeroMomentum": (ShellWithSuslovHingeZeroMomentum, "its zero-momentum system (2.9)"),
     "SuslovBundle": (SuslovBundle, "free two-body bundle on a nonholonomic hinge, generalized Suslov problem (3.3)/(3.5) (seed 003, sec. 3)"),
+    "ParticleInMovingCircle": (ParticleInMovingCircle, "free particle inside a moving circular wall, impacts by the affine projector (seed 004, ex. 10.1)"),
+    "BouncingBall": (BouncingBall, "ball bouncing on a vibrating table under gravity, exact impacts and the high-bounce map (seed 004, ex. 10.2)"),
+    "RollingSphereWall": (RollingSphereWall, "sphere rolling without slipping hits a moving smooth wall, jump keeps rolling (seed 004, ex. 10.3)"),
 }
 
 __all__ = [
     "BallOnPlatter",
+    "BouncingBall",
     "FallingCat",
     "FallingCatAttitudes",
     "FallingCatKinematic",
@@ -56,9 +63,11 @@ __all__ = [
     "FallingCatReduced",
     "FallingCatSmooth",
     "NBodyCat",
+    "ParticleInMovingCircle",
     "PlanarChain",
     "PlanarChainUnreduced",
     "REGISTRY",
+    "RollingSphereWall",
     "RollingDisk",
     "RollingDiskQuaternion",
     "ShapeLoopTorque",

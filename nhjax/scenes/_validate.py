@@ -1,19 +1,18 @@
-"""Input checks shared by the scenes: clear ValueErrors that name the field."""
+"""Input checks shared by the scenes: the checks of ``nhjax._validate`` (the one
+validation layer), re-exported under the names the scene modules use."""
 
 from __future__ import annotations
 
-import jax
-
-
-def positive(name, value, allow_zero=False):
-    """Raise ValueError unless ``value`` is > 0 (>= 0 with ``allow_zero``); traced values pass."""
-    if isinstance(value, jax.core.Tracer):
-        return
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    ok = v >= 0 if allow_zero else v > 0
-    if not ok or v != v or v == float("inf"):
-        kind = "non-negative" if allow_zero else "positive"
-        raise ValueError(f"{name} must be finite and {kind}, got {value}")
+from .._validate import (  # noqa: F401
+    GROUP_TOL,
+    choice,
+    in_range,
+    inertia_tensor,
+    integer,
+    positive,
+    principal_moments,
+    real,
+    rotation,
+    unit_quaternion,
+    vector,
+)

@@ -64,11 +64,23 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import positive
+from ._validate import positive, real, unit_quaternion
 
 __all__ = ["BallOnPlatter"]
+
+
+def baumgarte_gains(owner, gains):
+    """(alpha, beta) [1/s]: two finite, non-negative Baumgarte gains."""
+    try:
+        a, b = gains
+    except (TypeError, ValueError):
+        raise ParameterError(f"{owner}: baumgarte must be a pair (alpha, beta) of gains [1/s], got {gains!r}",
+                             "baumgarte", gains) from None
+    return tuple(float(positive(n, v, allow_zero=True, owner=owner, as_float=True, shape=(), what="Baumgarte gain [1/s]"))
+                 for n, v in (("baumgarte[0]", a), ("baumgarte[1]", b)))
 
 E3 = jnp.array([0.0, 0.0, 1.0])
 
@@ -99,17 +111,14 @@ class BallOnPlatter(ConstrainedLagrangian):
     control_dim: ClassVar[int] = 0
 
     def __init__(self, m=1.0, r=1.0, J=0.6, Omega=2.0, g=1.0, baumgarte=(0.0, 0.0)):
-        positive("m", m)
-        positive("r", r)
-        positive("J", J)
-        positive("g", g, allow_zero=True)
-        if not isinstance(Omega, jax.core.Tracer) and float(Omega) != float(Omega):
-            raise ValueError(f"Omega must be a number, got {Omega}")
-        self.m, self.r, self.J, self.Omega, self.g = (
-            jnp.asarray(v, float) for v in (m, r, J, Omega, g)
-        )
+        owner = "BallOnPlatter"
+        self.m = positive("m", m, owner=owner, what="mass [kg]")
+        self.r = positive("r", r, owner=owner, what="radius [m]")
+        self.J = positive("J", J, owner=owner, what="moment of inertia [kg m^2]")
+        self.Omega = real("Omega", Omega, owner=owner, what="rate of the platter [rad/s]")
+        self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
         self.n = 7
-        self.baumgarte = tuple(float(b) for b in baumgarte)
+        self.baumgarte = baumgarte_gains(owner, baumgarte)
 
     # ------------------------------------------------------------ kinematics
     @staticmethod
@@ -157,10 +166,13 @@ class BallOnPlatter(ConstrainedLagrangian):
         """Consistent state: centre (u1, u2, r) [m], centre velocity (u1', u2') [m/s],
         vertical spin w3 [rad/s], attitude (unit quaternion, default identity).
         The horizontal angular velocity follows from the no-slip condition."""
-        u = jnp.stack([jnp.asarray(u1, float), jnp.asarray(u2, float), self.r])
-        ud = jnp.stack([jnp.asarray(u1_dot, float), jnp.asarray(u2_dot, float), jnp.zeros(())])
-        p = jnp.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else jnp.asarray(attitude, float)
-        p = p / jnp.linalg.norm(p)
+        owner = "BallOnPlatter.initial_state"
+        u1, u2, u1_dot, u2_dot, spin = (real(n, v, owner=owner) for n, v in (
+            ("u1", u1), ("u2", u2), ("u1_dot", u1_dot), ("u2_dot", u2_dot), ("spin", spin)))
+        u = jnp.stack([u1, u2, self.r])
+        ud = jnp.stack([u1_dot, u2_dot, jnp.zeros(())])
+        p = jnp.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
+            "attitude", attitude, owner=owner, normalize=True)
         w_h = (jnp.cross(E3, ud) + self.Omega * u * jnp.array([1.0, 1.0, 0.0])) / self.r
         w = w_h + jnp.asarray(spin, float) * E3
         pd = 0.5 * so3.quat_mul(_vec(w), p)

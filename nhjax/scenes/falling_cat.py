@@ -66,6 +66,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..lie import SO3Body, Euclidean, so3
 from ..mechanics import AbstractSystem, ConstrainedLagrangian, MultibodyKinetics, RigidBody
 
@@ -86,6 +87,25 @@ _CHART_HINT = (
     "there. Keep the shape path away from theta = 0 (e.g. start slightly bent), or "
     "lower chart_eps to go closer."
 )
+
+
+_WHAT = {
+    "I1": "transverse moment of each cylinder about its centre of mass [kg m^2]",
+    "lam": "I2 / I1, axial over transverse moment [-]",
+    "B": "m l^2 / I1 [-]",
+    "mass": "mass of each cylinder [kg]",
+}
+
+
+def _cat_parameters(owner, I1, lam, B, mass):
+    """(I1, lam, B, mass) as float arrays, each finite and positive (named as passed)."""
+    return tuple(V.positive(name, v, owner=owner, what=_WHAT[name])
+                 for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)))
+
+
+def _chart_eps(owner, chart_eps):
+    return float(V.in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner=owner, as_float=True, shape=(),
+                            what="margin of the chart guard sin(theta) > chart_eps"))
 
 
 class _CatGeometry(eqx.Module):
@@ -206,30 +226,30 @@ class FallingCat(_CatGeometry, AbstractSystem):
         equations="hand",
         chart_eps=1e-3,
     ):
-        if equations not in ("hand", "engine"):
-            raise ValueError("equations must be 'hand' or 'engine'")
-        for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)):
-            if not isinstance(v, jax.core.Tracer) and not np.all(np.asarray(v) > 0):
-                raise ValueError(f"{name} must be positive, got {v}")
-        self.I1 = jnp.asarray(I1, float)
-        self.lam = jnp.asarray(lam, float)
-        self.B = jnp.asarray(B, float)
-        self.mass = jnp.asarray(mass, float)
+        V.choice("equations", equations, ("hand", "engine"), owner="FallingCat")
+        self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCat", I1, lam, B, mass)
         self.equations = equations
-        self.chart_eps = float(chart_eps)
+        self.chart_eps = _chart_eps("FallingCat", chart_eps)
 
     @classmethod
     def from_dimensions(cls, mass=1.0, length=1.0, radius=0.25, joint_offset=None, **kw):
         """Solid cylinders of ``mass`` [kg], ``length`` and ``radius`` [m], joint at
         distance ``joint_offset`` from each centre of mass (default length/2: end to end)."""
-        l = length / 2 if joint_offset is None else joint_offset  # noqa: E741
+        owner = f"{cls.__name__}.from_dimensions"
+        mass = V.positive("mass", mass, owner=owner, what="mass of each cylinder [kg]")
+        length = V.positive("length", length, owner=owner, what="length of each cylinder [m]")
+        radius = V.positive("radius", radius, owner=owner, what="radius of each cylinder [m]")
+        l = length / 2 if joint_offset is None else V.positive(  # noqa: E741
+            "joint_offset", joint_offset, owner=owner, what="joint to centre-of-mass distance [m]")
         I1 = mass * (3 * radius**2 + length**2) / 12
         I2 = mass * radius**2 / 2
         return cls(I1=I1, lam=I2 / I1, B=mass * l**2 / I1, mass=mass, **kw)
 
     def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
-        return jnp.array([theta, chi, psi, theta_dot, chi_dot], dtype=float)
+        vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
+                           chi_dot=chi_dot)
+        return jnp.stack(vals)
 
     def velocities(self, x):
         """Generalized velocities (theta', chi', psi') with psi' = -f chi'."""
@@ -300,10 +320,10 @@ class FallingCatLagrangian(_CatGeometry, ConstrainedLagrangian):
     state_names: ClassVar[tuple] = ("theta", "chi", "psi", "theta_dot", "chi_dot", "psi_dot")
     control_dim: ClassVar[int] = 2
 
-    def __init__(self, I1, lam, B, mass=1.0, chart_eps=1e-3):
-        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
-        self.mass = jnp.asarray(mass, float)
-        self.chart_eps = float(chart_eps)
+    def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
+                 chart_eps=1e-3):
+        self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatLagrangian", I1, lam, B, mass)
+        self.chart_eps = _chart_eps("FallingCatLagrangian", chart_eps)
         self.n = 3
 
     def kinetic_energy(self, q, qd):
@@ -333,11 +353,15 @@ class FallingCatKinematic(_CatGeometry, AbstractSystem):
 
     state_names: ClassVar[tuple] = ("theta", "chi", "psi")
     control_dim: ClassVar[int] = 2
+    requires_control: ClassVar[bool] = True
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0, chart_eps=1e-3):
-        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
-        self.mass = jnp.asarray(mass, float)
-        self.chart_eps = float(chart_eps)
+        self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatKinematic", I1, lam, B, mass)
+        self.chart_eps = _chart_eps("FallingCatKinematic", chart_eps)
+
+    def initial_state(self, theta, chi=0.0, psi=0.0):
+        """State (theta, chi, psi) [rad]."""
+        return jnp.stack(_state_args(type(self).__name__, theta=theta, chi=chi, psi=psi))
 
     def vector_field(self, t, x, u):
         return jnp.stack([u[0], u[1], -self.f(x[0]) * u[1]])
@@ -376,11 +400,15 @@ class FallingCatSmooth(_CatGeometry, AbstractSystem):
 
     state_names: ClassVar[tuple] = ("w1", "w2", "phi")
     control_dim: ClassVar[int] = 2
+    requires_control: ClassVar[bool] = True
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0):
-        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
-        self.mass = jnp.asarray(mass, float)
+        self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatSmooth", I1, lam, B, mass)
         self.chart_eps = 0.0
+
+    def initial_state(self, theta, chi=0.0, psi=0.0):
+        """State (w1, w2, phi) of the cat at Iwai's (theta, chi, psi) [rad]."""
+        return self.from_chart(*_state_args(type(self).__name__, theta=theta, chi=chi, psi=psi))
 
     def coefficients(self, w):
         """(k, a, b) at shape w (see the class docstring)."""
@@ -436,10 +464,10 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
     # for 10 s of the benchmark's torque motion)
     large_vector_field: ClassVar[bool] = True
 
-    def __init__(self, I1, lam, B, mass=1.0, chart_eps=1e-3):
-        self.I1, self.lam, self.B = (jnp.asarray(v, float) for v in (I1, lam, B))
-        self.mass = jnp.asarray(mass, float)
-        self.chart_eps = float(chart_eps)
+    def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
+                 chart_eps=1e-3):
+        self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatAttitudes", I1, lam, B, mass)
+        self.chart_eps = _chart_eps("FallingCatAttitudes", chart_eps)
 
     @property
     def spaces(self):
@@ -449,8 +477,11 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
         return FallingCat(self.I1, self.lam, self.B, self.mass, chart_eps=self.chart_eps)
 
     def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
-        Rs, _ = self.poses(jnp.array([theta, chi, psi], dtype=float))
-        return (Rs[0], Rs[1], jnp.array([theta, chi, theta_dot, chi_dot], dtype=float))
+        """((g1, g2, s)) from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
+        theta, chi, psi, theta_dot, chi_dot = _state_args(
+            type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot, chi_dot=chi_dot)
+        Rs, _ = self.poses(jnp.stack([theta, chi, psi]))
+        return (Rs[0], Rs[1], jnp.stack([theta, chi, theta_dot, chi_dot]))
 
     def body_angular_velocities(self, s):
         """Omega_1, Omega_2 [rad/s] for shape state s = (theta, chi, theta', chi')."""
@@ -511,6 +542,11 @@ class _OnAttitudeModel(eqx.Module):
         return self.control(t, jnp.stack([s[0], s[1], jnp.zeros_like(s[0]), s[2], s[3]]))
 
 
+def _state_args(owner, **kw):
+    """The named state arguments as finite float scalars (or arrays), in order."""
+    return [V.real(name, v, owner=f"{owner}.initial_state") for name, v in kw.items()]
+
+
 def _smoothstep(tau):
     """Quintic 0 -> 1 with zero first and second derivatives at both ends."""
     tau = jnp.clip(tau, 0.0, 1.0)
@@ -543,10 +579,21 @@ class ShapeLoopTorque(eqx.Module):
     kd: jax.Array
 
     def __init__(self, cat, theta0, theta1, windings=1.0, t_bend=1.0, t_twist=3.0, t_unbend=1.0, kp=0.0, kd=0.0):
+        owner = "ShapeLoopTorque"
+        if not isinstance(cat, FallingCat):
+            raise V.ParameterError(f"{owner}: cat must be an nhjax.scenes.FallingCat, got {type(cat).__name__}",
+                                   "cat", cat)
         self.cat = cat
-        self.theta0, self.theta1, self.windings = (jnp.asarray(v, float) for v in (theta0, theta1, windings))
-        self.t_bend, self.t_twist, self.t_unbend = (jnp.asarray(v, float) for v in (t_bend, t_twist, t_unbend))
-        self.kp, self.kd = jnp.asarray(kp, float), jnp.asarray(kd, float)
+        self.theta0, self.theta1 = (
+            V.in_range(n, v, 0.0, np.pi, lo_closed=False, hi_closed=False, owner=owner,
+                       what="half bend angle inside the chart (0, pi) [rad]")
+            for n, v in (("theta0", theta0), ("theta1", theta1)))
+        self.windings = V.real("windings", windings, owner=owner, what="turns of the twist chi")
+        self.t_bend, self.t_twist, self.t_unbend = (
+            V.positive(n, v, owner=owner, what="phase duration [s]")
+            for n, v in (("t_bend", t_bend), ("t_twist", t_twist), ("t_unbend", t_unbend)))
+        self.kp = V.positive("kp", kp, allow_zero=True, owner=owner, what="proportional gain [1/s^2]")
+        self.kd = V.positive("kd", kd, allow_zero=True, owner=owner, what="derivative gain [1/s]")
 
     @classmethod
     def for_turn(cls, cat, turn=np.pi, theta0=0.15, windings=1, **kw):

@@ -120,9 +120,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import positive
+from ._validate import in_range, positive, real
+from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollingDisk", "RollingDiskQuaternion"]
 
@@ -148,15 +150,14 @@ class _DiskParams(eqx.Module):
     guard_hints: ClassVar[dict] = {"tilt": _FLAT_HINT}
 
     def _set(self, m, r, g, J1, J2, chart_eps):
-        positive("m", m)
-        positive("r", r)
-        positive("g", g, allow_zero=True)
-        positive("J1", J1)
-        positive("J2", J2)
-        if not 0.0 <= float(chart_eps) < 1.0:
-            raise ValueError(f"chart_eps must lie in [0, 1), got {chart_eps}")
-        self.m, self.r, self.g, self.J1, self.J2 = (jnp.asarray(v, float) for v in (m, r, g, J1, J2))
-        self.chart_eps = float(chart_eps)
+        owner = type(self).__name__
+        self.m = positive("m", m, owner=owner, what="mass [kg]")
+        self.r = positive("r", r, owner=owner, what="radius [m]")
+        self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.J1 = positive("J1", J1, owner=owner, what="moment about the symmetry axis [kg m^2]")
+        self.J2 = positive("J2", J2, owner=owner, what="moment about a diameter [kg m^2]")
+        self.chart_eps = float(in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner=owner, as_float=True,
+                                        shape=(), what="margin of the tilt guard cos(theta) > chart_eps"))
 
     @property
     def inertia(self):
@@ -229,7 +230,10 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
     # ------------------------------------------------------------ states
     def initial_state(self, x1=0.0, x2=0.0, phi=0.0, theta=0.0, psi=0.0, phi_dot=0.0, theta_dot=0.0, psi_dot=0.0):
         """Consistent state from the angles [rad] and rates [rad/s]; x' = r psi' b."""
-        vals = [jnp.asarray(v, float) for v in (x1, x2, phi, theta, psi, phi_dot, theta_dot, psi_dot)]
+        owner = "RollingDisk.initial_state"
+        vals = [real(n, v, owner=owner) for n, v in (("x1", x1), ("x2", x2), ("phi", phi), ("theta", theta),
+                                                     ("psi", psi), ("phi_dot", phi_dot),
+                                                     ("theta_dot", theta_dot), ("psi_dot", psi_dot))]
         x1, x2, phi, th, psi, phid, thd, psid = vals
         return jnp.stack([
             x1, x2, phi, th, psi,
@@ -265,7 +269,14 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
         heading e1, tilt theta0, psi' = spin, phi' = q r spin (turning left for q > 0).
         With spin=None the rolling rate of the circular motion (``circular_rate``);
         any other spin gives the seed's perturbed data (9.44) (Table 9.1)."""
-        s = self.circular_rate(theta0, q) if spin is None else float(spin)
+        owner = "RollingDisk.circular_state"
+        theta0 = float(in_range("theta0", theta0, -np.pi / 2, np.pi / 2, lo_closed=False, hi_closed=False,
+                                owner=owner, as_float=True, shape=(), what="tilt [rad]"))
+        q = float(real("q", q, owner=owner, as_float=True, shape=(), what="curvature of the contact path [1/m]"))
+        if q == 0.0:
+            raise ParameterError(f"{owner}: q must be nonzero (the circle has radius 1/q), got 0; "
+                                 "for straight rolling use initial_state", "q", q)
+        s = self.circular_rate(theta0, q) if spin is None else float(real("spin", spin, owner=owner, as_float=True, shape=()))
         return self.initial_state(x2=-1.0 / q, theta=theta0, psi_dot=s, phi_dot=q * float(self.r) * s)
 
     def circular_period(self, theta0, q):
@@ -303,7 +314,7 @@ class RollingDiskQuaternion(_DiskParams, ConstrainedLagrangian):
     def __init__(self, m=1.0, r=1.0, g=1.0, J1=0.35, J2=0.5, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
         self._set(m, r, g, J1, J2, chart_eps)
         self.n = 7
-        self.baumgarte = tuple(float(b) for b in baumgarte)
+        self.baumgarte = baumgarte_gains("RollingDiskQuaternion", baumgarte)
 
     def axis(self, q):
         """Disk axis a1 = R_p e1 in space (first column of the rotation of p/|p|)."""

@@ -78,6 +78,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..mechanics import AbstractSystem
 from .shell_with_top import (
     _is_concrete,
@@ -93,24 +94,10 @@ __all__ = ["ShellWithSuslovHinge", "ShellWithSuslovHingeZeroMomentum"]
 E3 = jnp.array([0.0, 0.0, 1.0])
 
 
-def _principal_moments(name, v):
-    arr = jnp.asarray(v, float)
-    if arr.shape == (3, 3):
-        if _is_concrete(arr):
-            a = np.asarray(arr)
-            if np.abs(a - np.diag(np.diag(a))).max() > 1e-14 * np.abs(a).max():
-                raise ValueError(
-                    f"{name} must be diagonal: the hinge axis e = e3 is a principal axis "
-                    "of the inner body (seed 003, sec. 2); pass principal moments (I1, I2, I3)"
-                )
-        arr = jnp.diag(arr)
-    if arr.shape != (3,):
-        raise ValueError(f"{name} must be 3 principal moments (I1, I2, I3), got shape {arr.shape}")
-    if _is_concrete(arr):
-        a = np.asarray(arr)
-        if not (np.all(np.isfinite(a)) and np.all(a > 0)):
-            raise ValueError(f"{name} must be positive principal moments, got {a.tolist()}")
-    return arr
+def _principal_moments(name, v, owner=""):
+    return V.principal_moments(
+        name, v, owner=owner, diagonal_reason="the hinge axis e = e3 is a principal axis of the inner body "
+        "(seed 003, sec. 2)")
 
 
 class _HingeParameters(AbstractSystem):
@@ -121,11 +108,13 @@ class _HingeParameters(AbstractSystem):
     inertia: jax.Array
 
     def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=0.5, inertia=(2e-3, 3e-3, 4e-3)):
-        self.ms = _positive("ms", ms)
-        self.Rs = _positive("Rs", Rs)
-        self.Is = _positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is)
-        self.mt = _positive("mt", mt)
-        self.inertia = _principal_moments("inertia", inertia)
+        owner = type(self).__name__
+        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
+        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
+        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
+                             what="central moment of inertia of the shell [kg m^2]")
+        self.mt = V.positive("mt", mt, owner=owner, what="mass of the inner body [kg]")
+        self.inertia = _principal_moments("inertia", inertia, owner=owner)
 
     @property
     def m(self):
@@ -250,20 +239,24 @@ class ShellWithSuslovHinge(_HingeParameters):
         angular velocity components along the body's e1, e2 [rad/s] (Omega3 = omega3
         by the hinge); attitude: body -> space (None, rotation vector or matrix);
         position: contact point (x, y) [m]."""
-        R = attitude_matrix(attitude)
-        om = _vector3("omega", omega)
-        O12 = jnp.asarray(Omega12, float).reshape(2)
+        owner = "ShellWithSuslovHinge.initial_state"
+        R = attitude_matrix(attitude, owner=owner)
+        om = V.vector("omega", omega, 3, owner=owner, what="body angular velocity [rad/s]")
+        O12 = V.vector("Omega12", Omega12, 2, owner=owner, what="shell angular velocity along e1, e2 [rad/s]")
         Om = jnp.stack([O12[0], O12[1], om[2]])
-        return jnp.concatenate([om, Om, R[2], R[0], R[1], jnp.asarray(position, float).reshape(2)])
+        pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
+        return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
 
     def initial_state_zero_momentum(self, omega12, attitude=None, position=(0.0, 0.0)):
         """The state with M = 0 and body rates (omega1, omega2) [rad/s]: omega3 and
         Omega follow from M = 0 and the hinge (sec. 2.4)."""
-        R = attitude_matrix(attitude)
+        owner = "ShellWithSuslovHinge.initial_state_zero_momentum"
+        R = attitude_matrix(attitude, owner=owner)
         zm = ShellWithSuslovHingeZeroMomentum(self.ms, self.Rs, self.Is, self.mt, self.inertia)
-        o12 = jnp.asarray(omega12, float).reshape(2)
+        o12 = V.vector("omega12", omega12, 2, owner=owner, what="body rates (omega1, omega2) [rad/s]")
         om, Om = zm.velocities(o12, R[2])
-        return jnp.concatenate([om, Om, R[2], R[0], R[1], jnp.asarray(position, float).reshape(2)])
+        pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
+        return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
 
 
 class ShellWithSuslovHingeZeroMomentum(_HingeParameters):
@@ -340,7 +333,8 @@ class ShellWithSuslovHingeZeroMomentum(_HingeParameters):
 
     def initial_state(self, omega12, attitude=None, position=(0.0, 0.0)):
         """Body rates (omega1, omega2) [rad/s], attitude body -> space, contact point [m]."""
-        R = attitude_matrix(attitude)
-        return jnp.concatenate(
-            [jnp.asarray(omega12, float).reshape(2), R[2], R[0], R[1], jnp.asarray(position, float).reshape(2)]
-        )
+        owner = "ShellWithSuslovHingeZeroMomentum.initial_state"
+        R = attitude_matrix(attitude, owner=owner)
+        o12 = V.vector("omega12", omega12, 2, owner=owner, what="body rates (omega1, omega2) [rad/s]")
+        pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
+        return jnp.concatenate([o12, R[2], R[0], R[1], pos])

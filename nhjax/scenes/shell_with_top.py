@@ -122,6 +122,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..lie import so3
 from ..mechanics import AbstractSystem, ConstrainedLagrangian
 
@@ -137,62 +138,32 @@ def _is_concrete(*vals) -> bool:
     return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(vals))
 
 
-def _positive(name, v):
-    arr = jnp.asarray(v, float)
-    if _is_concrete(arr):
-        a = np.asarray(arr)
-        if a.shape != () or not np.isfinite(a) or not a > 0:
-            raise ValueError(f"{name} must be a positive finite scalar, got {v!r}")
-    return arr
+def _positive(name, v, owner=""):
+    return V.positive(name, v, owner=owner)
 
 
-def _inertia_tensor(name, v):
+def _inertia_tensor(name, v, owner=""):
     """3x3 symmetric positive definite tensor from a 3x3 array or 3 principal moments."""
-    arr = jnp.asarray(v, float)
-    if arr.shape == (3,):
-        arr = jnp.diag(arr)
-    if arr.shape != (3, 3):
-        raise ValueError(f"{name} must be a 3x3 inertia tensor or 3 principal moments, got shape {arr.shape}")
-    if _is_concrete(arr):
-        a = np.asarray(arr)
-        if not np.all(np.isfinite(a)):
-            raise ValueError(f"{name} contains NaN/inf")
-        if not np.allclose(a, a.T, rtol=1e-12, atol=1e-14 * np.abs(a).max()):
-            raise ValueError(f"{name} must be symmetric, got {a.tolist()}")
-        if not np.linalg.eigvalsh(a).min() > 0:
-            raise ValueError(
-                f"{name} must be positive definite (eigenvalues {np.linalg.eigvalsh(a).tolist()})"
-            )
-    return arr
+    return V.inertia_tensor(name, v, owner=owner)
 
 
-def _vector3(name, v):
-    arr = jnp.asarray(v, float)
-    if arr.shape != (3,):
-        raise ValueError(f"{name} must be a 3-vector, got shape {arr.shape}")
-    if _is_concrete(arr) and not np.all(np.isfinite(np.asarray(arr))):
-        raise ValueError(f"{name} contains NaN/inf")
-    return arr
+def _vector3(name, v, owner=""):
+    return V.vector(name, v, 3, owner=owner)
 
 
-def attitude_matrix(attitude):
+def attitude_matrix(attitude, name="attitude", owner=""):
     """Rotation matrix (top axes -> space) from None (identity), a rotation
-    vector (3,) [rad] or a 3x3 rotation matrix (checked)."""
+    vector (3,) [rad] or a 3x3 rotation matrix (checked: R^T R = I within 1e-9, det +1)."""
     if attitude is None:
         return jnp.eye(3)
-    R = jnp.asarray(attitude, float)
-    if R.shape == (3,):
-        return so3.exp(R)
-    if R.shape != (3, 3):
-        raise ValueError(f"attitude must be a rotation vector (3,) or a 3x3 rotation matrix, got shape {R.shape}")
-    if _is_concrete(R):
-        a = np.asarray(R)
-        err = np.abs(a @ a.T - np.eye(3)).max()
-        if err > 1e-9 or np.linalg.det(a) <= 0:
-            raise ValueError(
-                f"attitude is not a rotation matrix (|R R^T - I| = {err:.1e}, det = {np.linalg.det(a):.3g})"
-            )
-    return R
+    R = V._as_real(name, attitude, owner, "a rotation vector (3,) or a 3x3 rotation matrix")
+    if np.shape(R) == (3,):
+        return so3.exp(V.vector(name, R, 3, owner=owner))
+    if np.shape(R) != (3, 3):
+        raise V.ParameterError(
+            f"{owner + ': ' if owner else ''}{name} must be a rotation vector (3,) or a 3x3 rotation matrix, "
+            f"got shape {np.shape(R)}", name, attitude)
+    return V.rotation(name, R, owner=owner, tol=1e-9)
 
 
 def frame_residual(gamma, alpha, beta):
@@ -257,17 +228,18 @@ class ShellWithTopReduced(AbstractSystem):
         g=9.81,
         case="auto",
     ):
-        self.ms = _positive("ms", ms)
-        self.Rs = _positive("Rs", Rs)
-        self.Is = _positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is)
-        self.mt = _positive("mt", mt)
-        self.It = _inertia_tensor("It", It)
-        self.c = _vector3("c", c)
-        self.g = jnp.asarray(g, float)
+        owner = "ShellWithTopReduced"
+        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
+        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
+        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
+                             what="central moment of inertia of the shell [kg m^2]")
+        self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
+        self.It = V.inertia_tensor("It", It, owner=owner)
+        self.c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
+        self.g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        V.choice("case", case, ("auto", "general", "euler", "lagrange"), owner=owner)
         if case == "auto":
             case = self._detect_case()
-        if case not in ("general", "euler", "lagrange"):
-            raise ValueError("case must be 'auto', 'general', 'euler' or 'lagrange'")
         self.case = case
 
     def _detect_case(self, tol=1e-12):
@@ -487,13 +459,15 @@ class ShellWithTopReduced(AbstractSystem):
         position : contact point (x, y) [m].
         The shell's angular velocity follows from (1.5): Omega = gamma x V / Rs + Omega_z gamma.
         """
-        R = attitude_matrix(attitude)
+        owner = "ShellWithTopReduced.initial_state"
+        R = attitude_matrix(attitude, owner=owner)
         al, be, ga = R[0], R[1], R[2]
-        vx, vy = shell_velocity
-        V = R.T @ jnp.array([vx, vy, 0.0], dtype=float)
-        Om = jnp.cross(ga, V) / self.Rs + jnp.asarray(shell_spin, float) * ga
-        om = _vector3("omega", omega)
-        return jnp.concatenate([om, Om, ga, al, be, jnp.asarray(position, float).reshape(2)])
+        vx, vy = V.vector("shell_velocity", shell_velocity, 2, owner=owner, what="(vx, vy) [m/s]")
+        Vc = R.T @ jnp.stack([vx, vy, jnp.zeros(())])
+        Om = jnp.cross(ga, Vc) / self.Rs + V.real("shell_spin", shell_spin, owner=owner, shape=()) * ga
+        om = V.vector("omega", omega, 3, owner=owner, what="angular velocity of the top, its axes [rad/s]")
+        pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
+        return jnp.concatenate([om, Om, ga, al, be, pos])
 
 
 # ---------------------------------------------------------------- engine model
@@ -540,14 +514,18 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
 
     def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=0.5, It=(2e-3, 3e-3, 4e-3), c=(0.01, 0.0, -0.06), g=9.81,
                  chart_eps=0.1):
-        red = ShellWithTopReduced(ms=ms, Rs=Rs, Is=Is, mt=mt, It=It, c=c, g=g, case="general")
-        self.ms, self.Is, self.Rs, self.mt = red.ms, red.Is, red.Rs, red.mt
-        self.It, self.c, self.g = red.It, red.c, red.g
+        owner = "ShellWithTopLagrangian"
+        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
+        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
+        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
+                             what="central moment of inertia of the shell [kg m^2]")
+        self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
+        self.It = V.inertia_tensor("It", It, owner=owner)
+        self.c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
+        self.g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
         self.n = 8
-        chart_eps = float(chart_eps)
-        if not 0.0 <= chart_eps < 2 * np.pi:
-            raise ValueError(f"chart_eps must lie in [0, 2 pi) rad (0: no guard), got {chart_eps}")
-        self.chart_eps = chart_eps
+        self.chart_eps = float(V.in_range("chart_eps", chart_eps, 0.0, 2 * np.pi, hi_closed=False, owner=owner, as_float=True,
+                                          shape=(), what="margin of the rotation-vector guards [rad], 0: no guard"))
 
     def guards(self, x):
         """Distance [rad] of each rotation vector from the singular sphere |theta| = 2 pi,

@@ -76,9 +76,20 @@ import jax.numpy as jnp
 
 from ..lie import SE2Body, se2
 from ..mechanics import ConstrainedLagrangian, LieLagrangian
-from ._validate import positive
+from ._validate import positive, real
 
 __all__ = ["Skate", "SkateSE2"]
+
+
+def _parameters(owner, m, J, g, beta):
+    return (positive("m", m, owner=owner, what="mass [kg]"),
+            positive("J", J, owner=owner, what="moment of inertia about e3 [kg m^2]"),
+            positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]"),
+            real("beta", beta, owner=owner, what="tilt of the plane [rad]"))
+
+
+def _state_args(owner, **kw):
+    return [real(name, v, owner=f"{owner}.initial_state") for name, v in kw.items()]
 
 
 class Skate(ConstrainedLagrangian):
@@ -94,10 +105,7 @@ class Skate(ConstrainedLagrangian):
     control_dim: ClassVar[int] = 0
 
     def __init__(self, m=1.0, J=1.0, g=1.0, beta=0.0):
-        positive("m", m)
-        positive("J", J)
-        positive("g", g, allow_zero=True)
-        self.m, self.J, self.g, self.beta = (jnp.asarray(v, float) for v in (m, J, g, beta))
+        self.m, self.J, self.g, self.beta = _parameters("Skate", m, J, g, beta)
         self.n = 3
 
     # ------------------------------------------------------------ the model
@@ -114,7 +122,7 @@ class Skate(ConstrainedLagrangian):
     def initial_state(self, u1=0.0, u2=0.0, phi=0.0, speed=0.0, phi_dot=0.0):
         """State with contact point (u1, u2) [m], heading phi [rad], velocity
         ``speed`` [m/s] along the edge (negative: backwards) and spin phi_dot [rad/s]."""
-        u1, u2, phi, v, w = (jnp.asarray(a, float) for a in (u1, u2, phi, speed, phi_dot))
+        u1, u2, phi, v, w = _state_args(type(self).__name__, u1=u1, u2=u2, phi=phi, speed=speed, phi_dot=phi_dot)
         return jnp.stack([u1, u2, phi, v * jnp.cos(phi), v * jnp.sin(phi), w])
 
     def speed(self, x):
@@ -183,10 +191,7 @@ class SkateSE2(LieLagrangian):
     control_dim: ClassVar[int] = 0
 
     def __init__(self, m=1.0, J=1.0, g=1.0, beta=0.0):
-        positive("m", m)
-        positive("J", J)
-        positive("g", g, allow_zero=True)
-        self.m, self.J, self.g, self.beta = (jnp.asarray(v, float) for v in (m, J, g, beta))
+        self.m, self.J, self.g, self.beta = _parameters("SkateSE2", m, J, g, beta)
 
     @property
     def config_spaces(self):

@@ -47,17 +47,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..lie import Euclidean, SO3Body, so3
 from ..mechanics import LieLagrangian
 
 __all__ = ["ShellWithTop"]
 
 E3 = jnp.array([0.0, 0.0, 1.0])
-
-
-def _check_positive(name, value):
-    if not isinstance(value, jax.core.Tracer) and not np.all(np.asarray(value) > 0):
-        raise ValueError(f"{name} must be positive, got {value}")
 
 
 class ShellWithTop(LieLagrangian):
@@ -75,24 +71,16 @@ class ShellWithTop(LieLagrangian):
 
     def __init__(self, ms=1.0, Rs=0.2, Is=None, mt=2.0, It=((0.01, 0, 0), (0, 0.012, 0), (0, 0, 0.008)),
                  c=(0.0, 0.0, -0.08), g=9.81):
-        for name, v in (("ms", ms), ("Rs", Rs), ("mt", mt)):
-            _check_positive(name, v)
-        self.ms, self.Rs, self.mt = (jnp.asarray(v, float) for v in (ms, Rs, mt))
-        Is = 2.0 / 3.0 * ms * Rs**2 if Is is None else Is
-        _check_positive("Is", Is)
-        self.Is = jnp.asarray(Is, float)
-        It = jnp.asarray(It, float)
-        if It.shape != (3, 3):
-            raise ValueError(f"It must be a 3x3 inertia tensor, got shape {It.shape}")
-        if not isinstance(It, jax.core.Tracer):
-            ev = jnp.linalg.eigvalsh(0.5 * (It + It.T))
-            if not (float(jnp.max(jnp.abs(It - It.T))) < 1e-12 and float(ev[0]) > 0):
-                raise ValueError("It must be symmetric positive definite")
-        self.It = It
-        self.c = jnp.asarray(c, float)
-        if self.c.shape != (3,):
-            raise ValueError(f"c must be a 3-vector (top frame), got shape {self.c.shape}")
-        self.g = jnp.asarray(g, float)
+        owner = "ShellWithTop"
+        self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
+        self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
+        self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
+        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
+                             what="central moment of inertia of the shell [kg m^2]")
+        self.It = V.inertia_tensor("It", It, owner=owner)
+        self.c = V.vector("c", c, 3, owner=owner, what="centre of the shell to the top's centre of mass, "
+                          "top frame [m]")
+        self.g = V.positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
 
     @property
     def config_spaces(self):
@@ -134,12 +122,15 @@ class ShellWithTop(LieLagrangian):
                       shell_omega=(0.0, 0.0, 0.0), top_omega=(0.0, 0.0, 0.0)):
         """State from the centre's position [m], attitudes (3x3, default identity) and
         angular velocities in space [rad/s]; the centre's velocity follows from rolling."""
-        Rsh = jnp.eye(3) if shell_attitude is None else jnp.asarray(shell_attitude, float)
-        Rt = jnp.eye(3) if top_attitude is None else jnp.asarray(top_attitude, float)
-        Ws = jnp.asarray(shell_omega, float)
+        owner = "ShellWithTop.initial_state"
+        Rsh = jnp.eye(3) if shell_attitude is None else V.rotation("shell_attitude", shell_attitude, owner=owner)
+        Rt = jnp.eye(3) if top_attitude is None else V.rotation("top_attitude", top_attitude, owner=owner)
+        Ws = V.vector("shell_omega", shell_omega, 3, owner=owner, what="shell angular velocity in space [rad/s]")
+        wt = V.vector("top_omega", top_omega, 3, owner=owner, what="top angular velocity in space [rad/s]")
+        xy = V.vector("xy", xy, 2, owner=owner, what="position of the shell centre [m]")
         Vc = jnp.cross(Ws, self.Rs * E3)
-        v = jnp.concatenate([Vc[:2], Rsh.T @ Ws, Rt.T @ jnp.asarray(top_omega, float)])
-        return (jnp.asarray(xy, float), Rsh, Rt), v
+        v = jnp.concatenate([Vc[:2], Rsh.T @ Ws, Rt.T @ wt])
+        return (xy, Rsh, Rt), v
 
     def chaplygin_vector(self, y):
         """K = Is Omega_space + Rs e3 x (ms V + mt v_G) in space [kg m^2/s]; dK/dt = -Rt tau."""

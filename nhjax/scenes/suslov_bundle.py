@@ -75,6 +75,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..mechanics import AbstractSystem
 from .shell_with_top import (
     _inertia_tensor,
@@ -111,8 +112,8 @@ class SuslovBundle(AbstractSystem):
     control_dim: ClassVar[int] = 0
 
     def __init__(self, Is=0.02, inertia=(0.01, 0.015, 0.02)):
-        self.Is = _positive("Is", Is)
-        self.inertia = _inertia_tensor("inertia", inertia)
+        self.Is = V.positive("Is", Is, owner="SuslovBundle", what="moment of inertia of the outer body [kg m^2]")
+        self.inertia = V.inertia_tensor("inertia", inertia, owner="SuslovBundle")
         principal = False
         if _is_concrete(self.inertia):
             a = np.asarray(self.inertia)
@@ -250,8 +251,9 @@ class SuslovBundle(AbstractSystem):
         """omega: inner body's angular velocity [rad/s] (its axes); Omega12: the
         outer body's angular velocity along e1, e2 [rad/s] (Omega3 = omega3 by the
         hinge); attitude: inner body -> space (None, rotation vector or matrix)."""
-        R = attitude_matrix(attitude)
-        om = _vector3("omega", omega)
-        O12 = jnp.asarray(Omega12, float).reshape(2)
+        owner = "SuslovBundle.initial_state"
+        R = attitude_matrix(attitude, owner=owner)
+        om = V.vector("omega", omega, 3, owner=owner, what="inner body's angular velocity [rad/s]")
+        O12 = V.vector("Omega12", Omega12, 2, owner=owner, what="outer body's angular velocity along e1, e2 [rad/s]")
         Om = jnp.stack([O12[0], O12[1], om[2]])
         return jnp.concatenate([om, Om, R[2], R[0], R[1]])

@@ -66,7 +66,7 @@ import jax
 import jax.numpy as jnp
 
 from ..mechanics import ConstrainedLagrangian
-from ._validate import positive
+from ._validate import positive, real
 
 __all__ = ["TwoWheeledCart"]
 
@@ -90,12 +90,13 @@ class TwoWheeledCart(ConstrainedLagrangian):
     control_dim: ClassVar[int] = 0
 
     def __init__(self, m=1.0, r=1.0, a=0.5, Jc=1.0, Jw=0.5, g=0.3, beta=jnp.pi / 2):
-        for name, v in (("m", m), ("r", r), ("a", a), ("Jc", Jc), ("Jw", Jw)):
-            positive(name, v)
-        positive("g", g, allow_zero=True)
-        self.m, self.r, self.a, self.Jc, self.Jw, self.g, self.beta = (
-            jnp.asarray(v, float) for v in (m, r, a, Jc, Jw, g, beta)
-        )
+        owner = "TwoWheeledCart"
+        what = {"m": "mass of the cart [kg]", "r": "wheel radius [m]", "a": "half-length of the axle [m]",
+                "Jc": "moment of inertia about the vertical [kg m^2]", "Jw": "axial moment of a wheel [kg m^2]"}
+        self.m, self.r, self.a, self.Jc, self.Jw = (
+            positive(n, v, owner=owner, what=what[n]) for n, v in (("m", m), ("r", r), ("a", a), ("Jc", Jc), ("Jw", Jw)))
+        self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.beta = real("beta", beta, owner=owner, what="tilt of the plane [rad]")
         self.n = 5
 
     # ------------------------------------------------------------ the model
@@ -122,7 +123,9 @@ class TwoWheeledCart(ConstrainedLagrangian):
     def initial_state(self, x1=0.0, x2=0.0, theta=0.0, phi_l=0.0, phi_r=0.0, speed=0.0, theta_dot=0.0):
         """Consistent state from the pose, the speed along the symmetry axis [m/s]
         and the turning rate [rad/s]; the wheel rates follow from rolling."""
-        x1, x2, th, pl, pr, v, w = (jnp.asarray(z, float) for z in (x1, x2, theta, phi_l, phi_r, speed, theta_dot))
+        x1, x2, th, pl, pr, v, w = (real(n, z, owner="TwoWheeledCart.initial_state") for n, z in (
+            ("x1", x1), ("x2", x2), ("theta", theta), ("phi_l", phi_l), ("phi_r", phi_r), ("speed", speed),
+            ("theta_dot", theta_dot)))
         return jnp.stack([
             x1, x2, th, pl, pr,
             v * jnp.cos(th), v * jnp.sin(th), w,

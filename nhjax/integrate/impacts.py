@@ -1,0 +1,866 @@
+r"""``nhjax.simulate_impacts``: event-driven integration with state resets in one jitted solve.
+
+diffrax has no state-reset events, so the loop is ours: one ``lax.while_loop``
+whose every iteration takes one step of a diffrax solver (``solver.step``,
+``PIDController.adapt_step_size`` and the solver's dense interpolation are
+diffrax's own) and is in one of two phases:
+
+* **stepping**: an ordinary adaptive step. After an accepted step the event
+  functions are sampled on its dense output (``event_samples`` points, the
+  last the step's end): for a free contact e_a = psi_a(t, q), for a persistent
+  one e_a = mu_a (its compressive multiplier). The first sample where some e_a
+  < -tol brackets an event [s_{j-1}, s_j]; the step is then *not* taken and
+  the loop switches to
+* **locating**: Newton's method on G(tau) = min_a e_a(tau, y(tau)) over the
+  bracketed events, where y(tau) is a genuine Runge-Kutta step from the last
+  accepted point to tau (not the interpolant: the event state has the full
+  order of the method), G' its total time derivative (for a gap, the normal
+  velocity Psi = J q' + psi_t; for a multiplier, a jvp along the flow),
+  safeguarded by bisection on the bracket. It starts at the bracket's right
+  end and stops when the Newton correction is below 2 ulp of tau: the impact
+  time is the root of the computed trajectory to round-off.
+
+At the root the reset is applied (``nhjax.mechanics.impacts``): contacts
+approaching (Psi < 0) get the seed's affine-projector jump (eq. (17)/(18))
+with their restitution, persistent contacts and the permanent constraints
+(rolling) are kept through it; a persistent contact whose multiplier reached
+zero is released (no jump). Then the loop resumes stepping from the root with
+the step size the controller last proposed, the solver's FSAL stage recomputed.
+
+Rules (documented behaviour)
+----------------------------
+* Rest (ends Zeno sequences): after an impact, a contact whose rebound normal
+  velocity Psi+ <= ``rest_velocity`` is made plastic (Psi+ = 0) and becomes
+  *persistent* if its multiplier in that mode is compressive (mu > 0), else it
+  is released (free motion that separates). A ball chattering on a table thus
+  ends in resting contact after finitely many impacts, at the time of the first
+  impact slower than ``rest_velocity``: the accumulation time of the exact
+  Zeno sequence is later by at most 2 rest_velocity / (a (1 - alpha)) for
+  normal deceleration a. With ``rest_velocity=0`` chattering runs into
+  ``max_impacts``.
+* Plastic impacts (alpha = 0) follow the same rule: the constraint persists
+  (sticking to a moving wall, sliding on a moving circle) while mu > 0 and is
+  released where mu crosses zero (-``release_tol``).
+* Grazing: a crossing shallower than ``graze_tol`` (in psi's units) between
+  samples is not an event; an event located with Psi >= 0 (tangential touch)
+  gives no impulse and is handled by the rest rule.
+* Simultaneous events: every bracketed contact whose e_a is within its
+  tolerance at the root takes part (a multi-contact impact by the projector,
+  contacts that would pull are dropped); later ones in the same step are
+  found by the next steps.
+* Bound: at most ``max_impacts`` impacts (status "max_impacts"; the loop stops
+  there, never hangs), at most ``max_steps`` loop iterations (steps and Newton
+  iterations together), and 500 iterations without progress in time (status
+  "stalled": impacts accumulating at a Zeno point below round-off).
+* The dense output used for sampling can miss a crossing that begins and ends
+  between two samples; ``dtmax`` (default: the system's ``event_resolution``,
+  e.g. a fraction of a vibrating wall's period) bounds the step so that samples
+  resolve the wall's motion.
+
+Gradients
+---------
+The loop is a ``lax.while_loop``: forward mode (``jax.jvp``, ``jax.jacfwd``)
+goes through it, reverse mode (``jax.grad``) does not (JAX has no reverse rule
+for while loops). Differentiate with forward mode: the number of tangents is the
+number of differentiated inputs (initial data, amplitude, frequency,
+restitution: a handful), and forward mode vmaps. The impact-time dependence
+(the saltation correction) is in the derivative: the root tau* carries the
+implicit derivative dtau* = -dG/G' (one Newton step whose value is exactly
+zero), the event state y(tau*) + f dtau*, and every later step starts from it.
+Step sizes proposed by the controller are constants to the derivative (as in
+diffrax), so the derivative is that of the discrete method.
+
+Energy bookkeeping: the state carries W, the work of all forces outside T and V
+(inputs, permanent and contact constraint forces: F.q' + lam.(A q') + mu.(J q')),
+and every jump's energy change is recorded, so
+``energy_error = E(t1) - E(t0) - W - sum of jumps`` checks the integration for
+any system whose T and V do not depend on time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._validate import check_saveat, choice, in_range, integer, solver_settings, time_span
+from ..errors import ConstraintViolationError, IntegrationError, ParameterError, StateError
+from ..mechanics.impacts import (
+    _contact_kkt,
+    _impact_from_geometry,
+    contact_kinematics,
+    impact_geometry,
+    restitution_of,
+)
+
+__all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "simulate_impacts_batch", "solve_impacts"]
+
+STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
+# loop iterations without progress in time after which the solve is declared stalled
+_STALL = 500
+
+
+class ImpactTrajectory(eqx.Module):
+    """A motion with impacts, its events and the diagnostics that qualify it.
+
+    Fields (N = max_impacts, k = number of one-sided constraints, x = (q, q'))
+    ------
+    ts, xs : saved times and states (NaN rows past the end of the solve); saved
+        states at an impact time are its left limits.
+    work : W at the saved times (work of forces outside T and V, see module doc).
+    t_final, x_final : where the solve ended (t1, or the last impact if stopped).
+    num_impacts : impacts recorded (<= N).
+    impact_times (N,) : impact times (NaN past num_impacts).
+    impact_contacts (N, k) : which contacts took part.
+    x_pre, x_post (N, 2n) : states just before / after each impact (same q).
+    normal_velocity_pre, normal_velocity_post (N, k) : Psi = J q' + psi_t.
+    impulses (N, k) : mu_a (>= 0, along J^T).
+    energy_pre, energy_post (N,) : energy before and after each impact.
+    energy_jumps : sum of the energy changes of all jumps.
+    energy_error : E(t_final) - E(t0) - W - energy_jumps (0 up to integration error
+        when T and V do not depend on time).
+    persistent (k,) : contacts persistent at the end; rest_times (k,): last time
+        each became persistent (NaN: never); release_times (k,): last time each was
+        released (NaN: never); num_releases.
+    min_gap (k,) : smallest psi of free contacts at the accepted steps' ends
+        (penetration, if negative).
+    constraint_residual : max |A q' + a| at step ends (permanent constraints).
+    contact_residual : max |psi|, |Psi| of persistent contacts at step ends.
+    num_steps, num_accepted_steps, num_rejected_steps : loop iterations and steps.
+    status : 0 success, 1 max_impacts reached, 2 max_steps exhausted, 3 NaN/inf,
+        4 stalled (no progress in time over 500 loop iterations: a Zeno point).
+    """
+
+    ts: jax.Array
+    xs: jax.Array
+    work: jax.Array
+    t_final: jax.Array
+    x_final: jax.Array
+    num_impacts: jax.Array
+    impact_times: jax.Array
+    impact_contacts: jax.Array
+    x_pre: jax.Array
+    x_post: jax.Array
+    normal_velocity_pre: jax.Array
+    normal_velocity_post: jax.Array
+    impulses: jax.Array
+    energy_pre: jax.Array
+    energy_post: jax.Array
+    energy_jumps: jax.Array
+    energy_error: jax.Array
+    persistent: jax.Array
+    rest_times: jax.Array
+    release_times: jax.Array
+    num_releases: jax.Array
+    min_gap: jax.Array
+    constraint_residual: jax.Array
+    contact_residual: jax.Array
+    num_steps: jax.Array
+    num_accepted_steps: jax.Array
+    num_rejected_steps: jax.Array
+    status: jax.Array
+    n: int = eqx.field(static=True, default=0)
+    state_names: tuple = eqx.field(static=True, default=())
+
+    def __getitem__(self, name: str):
+        if name not in self.state_names:
+            raise KeyError(f"no state component '{name}'; have {self.state_names}")
+        return self.xs[..., self.state_names.index(name)]
+
+    @property
+    def velocities_pre(self):
+        return self.x_pre[..., self.n :]
+
+    @property
+    def velocities_post(self):
+        return self.x_post[..., self.n :]
+
+    def summary(self) -> str:
+        k = int(self.num_impacts)
+        lines = [
+            f"t_final = {float(self.t_final):.10g}  status: {STATUS[int(self.status)]}  "
+            f"impacts: {k}  releases: {int(self.num_releases)}",
+            f"  steps: {int(self.num_accepted_steps)} accepted, {int(self.num_rejected_steps)} "
+            f"rejected, {int(self.num_steps)} loop iterations",
+            f"  energy: jumps {float(self.energy_jumps):.6g}, bookkeeping error "
+            f"{float(self.energy_error):.2e}",
+            f"  min gap {np.asarray(self.min_gap)}, permanent-constraint residual "
+            f"{float(self.constraint_residual):.2e}, contact residual {float(self.contact_residual):.2e}",
+        ]
+        if bool(np.any(np.asarray(self.persistent))):
+            lines.append(f"  persistent contacts at the end: {np.flatnonzero(np.asarray(self.persistent)).tolist()}")
+        return "\n".join(lines)
+
+
+def _num_contacts(system, t0, x0):
+    if not hasattr(system, "unilateral_constraints"):
+        raise TypeError(
+            f"{type(system).__name__} declares no one-sided constraints: define "
+            "unilateral_constraints(t, q) -> gaps (admissible where >= 0), or wrap it: "
+            "nhjax.mechanics.WithContacts(system, psi, restitution)"
+        )
+    return jnp.atleast_1d(system.unilateral_constraints(t0, x0[: system.n])).shape[0]
+
+
+def _ulp(t):
+    t = jax.lax.stop_gradient(t)
+    return jnp.spacing(jnp.abs(t)) + jnp.finfo(jnp.float64).tiny
+
+
+def solve_impacts(
+    system,
+    x0,
+    t1,
+    *,
+    t0=0.0,
+    ts=None,
+    solver=None,
+    rtol=1e-10,
+    atol=1e-10,
+    dt0=None,
+    dtmax=None,
+    max_steps: int = 100_000,
+    max_impacts: int = 1000,
+    rest_velocity=1e-6,
+    graze_tol=1e-12,
+    release_tol=1e-10,
+    event_samples: int = 4,
+    locate_iterations: int = 60,
+) -> ImpactTrajectory:
+    """The pure, jittable, vmappable solve behind ``simulate_impacts`` (one member).
+
+    No input checks and no exceptions: failures are in ``status``. ``ts``: 1-D array of
+    save times in [t0, t1] (None: none saved). Everything numeric may be traced
+    (differentiate with jax.jvp/jacfwd); ``solver``, ``max_steps``, ``max_impacts``,
+    ``event_samples``, ``locate_iterations`` and whether ``dtmax`` is None are static.
+    To batch: ``jax.vmap(lambda s, x: solve_impacts(s, x, t1, **options))`` (this is
+    what ``simulate_impacts_batch`` does in chunks)."""
+    solver = diffrax.Dopri5() if solver is None else solver
+    if getattr(solver, "scan_kind", "") is None:
+        # diffrax's default stage loop is a checkpointed while loop, which has no
+        # forward-mode rule; a plain lax loop keeps jvp/jacfwd through the solve working
+        solver = dataclasses.replace(solver, scan_kind="lax")
+    x0 = jnp.asarray(x0, float)
+    dtype = x0.dtype
+    t0 = jnp.asarray(t0, dtype)
+    t1 = jnp.asarray(t1, dtype)
+    n = system.n
+    k = _num_contacts(system, t0, x0)
+    alpha = restitution_of(system, k)
+    rest_velocity = jnp.asarray(rest_velocity, dtype)
+    graze_tol = jnp.asarray(graze_tol, dtype)
+    release_tol = jnp.asarray(release_tol, dtype)
+    N = int(max_impacts)
+    m = int(event_samples)
+    if ts is None:
+        ts = jnp.zeros((0,), dtype)
+    ts = jnp.asarray(ts, dtype)
+    ns = ts.shape[0]
+
+    def split(x):
+        return x[:n], x[n:]
+
+    def kkt(t, x, persistent):
+        q, qd = split(x)
+        return _contact_kkt(system, t, q, qd, persistent)
+
+    def vf(t, y, args):
+        persistent = args
+        qdd, _, _, power = kkt(t, y[:-1], persistent)
+        return jnp.concatenate([y[n:-1], qdd, power[None]])
+
+    def events(t, x, persistent):
+        q, _ = split(x)
+        psi = jnp.atleast_1d(system.unilateral_constraints(t, q))
+        _, _, mu, _ = kkt(t, x, persistent)
+        return jnp.where(persistent, mu, psi)
+
+    def tolerances(persistent):
+        return jnp.where(persistent, release_tol, graze_tol)
+
+    def energy(x):
+        return system.energy(x)
+
+    term = diffrax.ODETerm(vf)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
+    order = solver.error_order(term)
+
+    # -- initial contact modes: resting contacts (gap ~ 0, normal velocity ~ 0, compressive)
+    q0, qd0 = split(x0)
+    psi0, _, Psi0 = contact_kinematics(system, t0, q0, qd0)
+    cand = (psi0 <= graze_tol) & (jnp.abs(Psi0) <= rest_velocity)
+    _, _, mu0, _ = kkt(t0, x0, cand)
+    persistent0 = cand & (mu0 > 0)
+
+    y0 = jnp.concatenate([x0, jnp.zeros((1,), dtype)])
+    tnext, cstate = controller.init(term, t0, t1, y0, dt0, persistent0, solver.func, order)
+    h0 = jax.lax.stop_gradient(jnp.minimum(tnext, t1) - t0)
+    sstate = solver.init(term, t0, t0 + h0, y0, persistent0)
+    nan = jnp.asarray(jnp.nan, dtype)
+    zi = jnp.zeros((), jnp.int32)
+    carry = dict(
+        t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
+        persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
+        n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
+        imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
+        imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
+        imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
+        imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
+        E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
+        release_time=jnp.full((k,), nan),
+        min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
+        contact_res=jnp.zeros((), dtype),
+        save_idx=zi, ys=jnp.full((ns, 2 * n + 1), nan),
+    )
+    carry = jax.tree_util.tree_map(jnp.asarray, carry)
+
+    def save(c, t_b, interp):
+        """Save every pending time <= t_b from the step's dense output."""
+        def cond(sc):
+            idx, _ = sc
+            return (idx < ns) & (ts[jnp.minimum(idx, ns - 1)] <= t_b)
+
+        def one(sc):
+            idx, ys = sc
+            return idx + 1, ys.at[idx].set(interp.evaluate(ts[idx]))
+
+        if ns == 0:
+            return c["save_idx"], c["ys"]
+        return jax.lax.while_loop(cond, one, (c["save_idx"], c["ys"]))
+
+    def project(t, y, persistent):
+        """Put persistent contacts back on psi = 0, Psi = 0 (one Newton step on q, the
+        metric-smallest velocity change that keeps A q' + a unchanged)."""
+        x = y[:-1]
+        q, qd = split(x)
+        w = persistent.astype(dtype)
+        psi, J, _ = contact_kinematics(system, t, q, qd)
+        Jm = J * w[:, None]
+        z = jnp.linalg.solve(Jm @ Jm.T + jnp.diag(1.0 - w), w * psi)
+        q = q - Jm.T @ z
+        M = system.mass_matrix(q)
+        A = system.constraint_jacobian(t, q)
+        _, J, Psi = contact_kinematics(system, t, q, qd)
+        mA = A.shape[0]
+        K = jnp.block([
+            [M, A.T, (J * w[:, None]).T],
+            [A, jnp.zeros((mA, mA + k), dtype)],
+            [J * w[:, None], jnp.zeros((k, mA), dtype), jnp.diag(1.0 - w)],
+        ])
+        rhs = jnp.concatenate([jnp.zeros(n, dtype), jnp.zeros(mA, dtype), -w * Psi])
+        qd = qd + jnp.linalg.solve(K, rhs)[:n]
+        return jnp.concatenate([q, qd, y[-1:]])
+
+    def residuals(t, x, persistent):
+        q, qd = split(x)
+        perm = system._all_velocity_constraints(t, q, qd)
+        perm = jnp.max(jnp.abs(perm)) if perm.shape[0] else jnp.zeros((), dtype)
+        psi, _, Psi = contact_kinematics(system, t, q, qd)
+        cres = jnp.max(jnp.where(persistent, jnp.maximum(jnp.abs(psi), jnp.abs(Psi)), 0.0))
+        gap = jnp.where(persistent, jnp.inf, psi)
+        return perm, cres, gap
+
+    def finalize(c, t_end, y1, interp, G, Gp, e, x_dot):
+        """Apply the event at the located root t_end (state y1)."""
+        persistent = c["persistent"]
+        # implicit derivative of the root: value exactly 0, tangent -dG / G'
+        Gp_safe = jax.lax.stop_gradient(jnp.where((Gp != 0) & jnp.isfinite(Gp), Gp, 1.0))
+        corr = -G / Gp_safe
+        corr = corr - jax.lax.stop_gradient(corr)
+        t_star = jax.lax.stop_gradient(t_end) + corr
+        y_star = y1 + jax.lax.stop_gradient(x_dot) * corr
+        x_star = y_star[:-1]
+        q, qd = split(x_star)
+        geom = impact_geometry(system, t_star, q)
+        J, j = geom[3], geom[4]
+        Psi = J @ qd + j
+        fire = c["evset"] & (e <= tolerances(persistent))
+        fire = fire | (c["evset"] & (e == jnp.min(jnp.where(c["evset"], e, jnp.inf))))
+        releasing = fire & persistent
+        touching = fire & ~persistent
+        hitting = touching & (Psi < 0)
+        kept = persistent & ~releasing
+        qd1, mu, _ = _impact_from_geometry(geom, qd, hitting, alpha, kept)
+        slow = touching & (J @ qd1 + j <= rest_velocity)
+        qd2, mu2, _ = _impact_from_geometry(geom, qd, hitting, jnp.where(slow, 0.0, alpha), kept | slow)
+        any_slow = jnp.any(slow)
+        qd_new = jnp.where(any_slow, qd2, qd1)
+        mu_new = jnp.where(any_slow, mu2, mu)
+        cand = kept | slow
+        _, _, mu_c, _ = kkt(t_star, jnp.concatenate([q, qd_new]), cand)
+        new_persistent = kept | (slow & (mu_c > 0))
+        x_plus = jnp.concatenate([q, qd_new])
+        Psi_post = J @ qd_new + j
+        impact = jnp.any(hitting)
+        E_pre, E_post = energy(x_star), energy(x_plus)
+        row = jnp.where(impact, c["n_imp"], N)  # out of range: dropped
+        out = dict(c)
+        out["imp_t"] = c["imp_t"].at[row].set(t_star, mode="drop")
+        out["imp_mask"] = c["imp_mask"].at[row].set(hitting, mode="drop")
+        out["imp_x_pre"] = c["imp_x_pre"].at[row].set(x_star, mode="drop")
+        out["imp_x_post"] = c["imp_x_post"].at[row].set(x_plus, mode="drop")
+        out["imp_Psi_pre"] = c["imp_Psi_pre"].at[row].set(Psi, mode="drop")
+        out["imp_Psi_post"] = c["imp_Psi_post"].at[row].set(Psi_post, mode="drop")
+        out["imp_mu"] = c["imp_mu"].at[row].set(mu_new, mode="drop")
+        out["imp_E_pre"] = c["imp_E_pre"].at[row].set(E_pre, mode="drop")
+        out["imp_E_post"] = c["imp_E_post"].at[row].set(E_post, mode="drop")
+        out["E_jumps"] = c["E_jumps"] + (E_post - E_pre)
+        out["n_imp"] = c["n_imp"] + impact.astype(jnp.int32)
+        out["n_rel"] = c["n_rel"] + jnp.sum(releasing).astype(jnp.int32)
+        out["rest_time"] = jnp.where(new_persistent & ~persistent, t_star, c["rest_time"])
+        out["release_time"] = jnp.where(persistent & ~new_persistent, t_star, c["release_time"])
+        out["status"] = jnp.where(impact & (out["n_imp"] >= N), jnp.int32(1), c["status"])
+        out["save_idx"], out["ys"] = save(c, t_end, interp)
+        out["t"] = t_star
+        out["y"] = jnp.concatenate([x_plus, y_star[-1:]])
+        out["persistent"] = new_persistent
+        out["made_jump"] = jnp.ones((), bool)
+        out["phase"] = jnp.zeros((), jnp.int32)
+        return out
+
+    def body(c):
+        locate = c["phase"] == 1
+        t = c["t"]
+        persistent = c["persistent"]
+        t_end = jnp.where(locate, jax.lax.stop_gradient(c["tau"]), jnp.minimum(t + c["h"], t1))
+        y1, y_err, dense, s1, _ = solver.step(term, t, t_end, c["y"], persistent, c["sstate"], c["made_jump"])
+        interp = solver.interpolation_cls(t0=t, t1=t_end, **dense)
+        finite = jnp.all(jnp.isfinite(y1))
+        y_err = jnp.where(jnp.isfinite(y_err), y_err, jnp.inf)
+        keep, nt0, nt1, _, cstate1, _ = controller.adapt_step_size(
+            t, t_end, c["y"], jnp.where(finite, y1, c["y"]), persistent, y_err, order, c["cstate"])
+        keep = keep & finite
+        dt_next = jax.lax.stop_gradient(nt1 - nt0)
+
+        out = dict(c)
+        out["n_steps"] = c["n_steps"] + 1
+
+        # ---------------------------------------------------------------- stepping
+        fr = jnp.arange(0, m + 1, dtype=dtype) / m
+        s_all = t + (t_end - t) * fr  # samples, the step's start and end included
+
+        def gap_on_dense(tt):
+            return jnp.atleast_1d(system.unilateral_constraints(tt, interp.evaluate(tt)[:n]))
+
+        gaps, rates = jax.vmap(lambda tt: jax.jvp(gap_on_dense, (tt,), (jnp.ones((), dtype),)))(s_all)
+        s = s_all[1:]
+        xs_s = jnp.concatenate([jax.vmap(interp.evaluate)(s[:-1])[:, :-1], y1[None, :-1]], axis=0)
+        mus = jax.lax.cond(
+            jnp.any(persistent),
+            lambda _: jax.vmap(lambda tt, xx: kkt(tt, xx, persistent)[2])(s, xs_s),
+            lambda _: jnp.zeros((m, k), dtype), None)
+        e_s = jnp.where(persistent[None, :], mus, gaps[1:])  # (m, k) event values
+        tol = tolerances(persistent)
+        below = e_s < -tol[None, :]
+        any_j = jnp.any(below, axis=1)
+        crossed = jnp.any(any_j)
+        j = jnp.argmax(any_j)
+        # a gap that dips below -graze_tol and comes back between two samples: its rate
+        # turns from < 0 to > 0 there; find that minimum (regula falsi on the rate)
+        free_ok = (~persistent)[None, :] & (gaps[:-1] >= -tol) & (gaps[1:] >= -tol)
+        dip = free_ok & (rates[:-1] < 0) & (rates[1:] > 0)  # (m, k) per interval
+        any_i = jnp.any(dip, axis=1)
+        has_dip = jnp.any(any_i) & (~crossed | (jnp.argmax(any_i) < j))
+        i_d = jnp.argmax(any_i)
+        a_d = jnp.argmax(dip[i_d])
+
+        def deepest(_):
+            def rate(tt):
+                return jax.jvp(lambda u: gap_on_dense(u)[a_d], (tt,), (jnp.ones((), dtype),))
+
+            def it(_, st):
+                lo_, hi_, rl, rh, side = st
+                tm = lo_ - rl * (hi_ - lo_) / (rh - rl)
+                tm = jnp.where(jnp.isfinite(tm) & (tm > lo_) & (tm < hi_), tm, 0.5 * (lo_ + hi_))
+                _, r = rate(tm)
+                left = r < 0  # minimum to the right of tm
+                # Illinois: halve the value kept twice on the same side
+                rh = jnp.where(left & (side == 1), 0.5 * rh, rh)
+                rl = jnp.where(~left & (side == -1), 0.5 * rl, rl)
+                return (jnp.where(left, tm, lo_), jnp.where(left, hi_, tm), jnp.where(left, r, rl),
+                        jnp.where(left, rh, r), jnp.where(left, 1, -1))
+
+            st = (s_all[i_d], s_all[i_d + 1], rates[i_d, a_d], rates[i_d + 1, a_d], 0)
+            lo_, hi_, _, _, _ = jax.lax.fori_loop(0, 12, it, st)
+            tm = 0.5 * (lo_ + hi_)
+            return tm, gap_on_dense(tm)
+
+        t_min, gaps_min = jax.lax.cond(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
+        dipped = has_dip & (gaps_min[a_d] < -tol[a_d])
+        found = crossed | dipped
+        lo = jnp.where(dipped, s_all[i_d], jnp.where(j == 0, t, s[jnp.maximum(j - 1, 0)]))
+        hi = jnp.where(dipped, t_min, s[j])
+        evset0 = jnp.where(dipped, (gaps_min < -tol) & ~persistent, below[j])
+
+        def guess(_):
+            """A first root estimate on the dense output (safeguarded Newton, from hi):
+            the root finder on genuine steps then needs one or two iterations."""
+            def g_of(tt):
+                return jnp.min(jnp.where(evset0, events(tt, interp.evaluate(tt)[:-1], persistent), jnp.inf))
+
+            def it(_, st):
+                tau, a, b = st
+                gv, gd = jax.jvp(g_of, (tau,), (jnp.ones((), dtype),))
+                a = jnp.where(gv < 0, a, tau)
+                b = jnp.where(gv < 0, tau, b)
+                tn = tau - gv / gd
+                tn = jnp.where(jnp.isfinite(tn) & (tn >= a) & (tn <= b), tn, 0.5 * (a + b))
+                return tn, a, b
+
+            tau, _, _ = jax.lax.fori_loop(0, 6, it, (hi, lo, hi))
+            return jax.lax.stop_gradient(tau)
+
+        tau0 = jax.lax.cond(found & keep, guess, lambda _: hi, None)
+
+        def advance(c):
+            o = dict(c)
+            y_new = jax.lax.cond(jnp.any(persistent), lambda yy: project(t_end, yy, persistent),
+                                 lambda yy: yy, y1)
+            o["save_idx"], o["ys"] = save(c, t_end, interp)
+            o["t"], o["y"], o["sstate"] = t_end, y_new, s1
+            o["made_jump"] = jnp.any(persistent)
+            perm, cres, gap = residuals(t_end, y_new[:-1], persistent)
+            o["perm_res"] = jnp.maximum(c["perm_res"], perm)
+            o["contact_res"] = jnp.maximum(c["contact_res"], cres)
+            o["min_gap"] = jnp.minimum(c["min_gap"], gap)
+            return o
+
+        def stepping(c):
+            accepted = dict(c)
+            accepted["n_acc"] = c["n_acc"] + 1
+            accepted["h"] = dt_next
+            accepted["cstate"] = cstate1
+            start_locate = dict(accepted)
+            start_locate.update(phase=jnp.ones((), jnp.int32), lo=jax.lax.stop_gradient(lo),
+                                hi=jax.lax.stop_gradient(hi), tau=tau0,
+                                evset=evset0, iters=jnp.zeros((), jnp.int32))
+            rejected = dict(c)
+            rejected["n_rej"] = c["n_rej"] + 1
+            rejected["h"] = dt_next
+            rejected["cstate"] = cstate1
+            go = keep & ~found
+            res = jax.lax.cond(go, advance, lambda cc: cc, accepted)
+            res = jax.tree_util.tree_map(lambda a, b: jnp.where(keep & found, a, b), start_locate, res)
+            return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), res, rejected)
+
+        # ---------------------------------------------------------------- locating
+        def locating(c):
+            evset = c["evset"]
+            x_tau = y1[:-1]
+            x_dot = vf(t_end, y1, persistent)
+            e, de = jax.jvp(lambda tt, xx: events(tt, xx, persistent), (t_end, x_tau),
+                            (jnp.ones((), dtype), x_dot[:-1]))
+            masked = jnp.where(evset, e, jnp.inf)
+            a_star = jnp.argmin(masked)
+            G, Gp = masked[a_star], de[a_star]
+            neg = G < 0
+            lo_n = jnp.where(neg, c["lo"], t_end)
+            hi_n = jnp.where(neg, t_end, c["hi"])
+            step = -G / Gp
+            tau_n = t_end + step
+            small = jnp.abs(step) <= 2 * _ulp(t_end)
+            bad = ~jnp.isfinite(tau_n) | (tau_n < lo_n) | (tau_n > hi_n)
+            tau_n = jnp.where(bad, 0.5 * (lo_n + hi_n), tau_n)
+            conv = small | (G == 0) \
+                | (hi_n - lo_n <= 4 * _ulp(t_end)) | (c["iters"] + 1 >= locate_iterations) | ~finite
+            moving = dict(c)
+            moving.update(lo=jax.lax.stop_gradient(lo_n), hi=jax.lax.stop_gradient(hi_n),
+                          tau=jax.lax.stop_gradient(tau_n), iters=c["iters"] + 1)
+            return jax.lax.cond(conv, lambda cc: finalize(cc, t_end, y1, interp, G, Gp, e, x_dot),
+                                lambda cc: moving, c)
+
+        out = jax.lax.cond(locate, locating, stepping, out)
+        out["status"] = jnp.where((out["status"] == 0) & ~jnp.all(jnp.isfinite(out["y"])), 3, out["status"])
+        # no progress in time for _STALL iterations (e.g. a Zeno point with rest_velocity = 0)
+        progressed = jax.lax.stop_gradient(out["t"]) > c["t_prog"] + 4 * _ulp(c["t_prog"])
+        out["t_prog"] = jnp.where(progressed, jax.lax.stop_gradient(out["t"]), c["t_prog"])
+        out["stall"] = jnp.where(progressed, 0, c["stall"] + 1)
+        out["status"] = jnp.where((out["status"] == 0) & (out["stall"] >= _STALL), 4, out["status"])
+        return out
+
+    def cond(c):
+        return (c["t"] < t1) & (c["status"] == 0) & (c["n_steps"] < max_steps)
+
+    c = jax.lax.while_loop(cond, body, carry)
+    status = jnp.where((c["status"] == 0) & (c["t"] < t1), 2, c["status"])
+    x_final = c["y"][:-1]
+    W = c["y"][-1]
+    energy_error = energy(x_final) - energy(x0) - W - c["E_jumps"]
+    saved = jnp.arange(ns) < c["save_idx"]
+    return ImpactTrajectory(
+        ts=jnp.where(saved, ts, jnp.nan), xs=c["ys"][:, :-1], work=c["ys"][:, -1],
+        t_final=c["t"], x_final=x_final,
+        num_impacts=c["n_imp"], impact_times=c["imp_t"], impact_contacts=c["imp_mask"],
+        x_pre=c["imp_x_pre"], x_post=c["imp_x_post"],
+        normal_velocity_pre=c["imp_Psi_pre"], normal_velocity_post=c["imp_Psi_post"],
+        impulses=c["imp_mu"], energy_pre=c["imp_E_pre"], energy_post=c["imp_E_post"],
+        energy_jumps=c["E_jumps"], energy_error=energy_error,
+        persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
+        num_releases=c["n_rel"],
+        min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
+        num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
+        status=status, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
+    )
+
+
+def _concrete(*trees) -> bool:
+    return not any(isinstance(a, jax.core.Tracer) for a in jax.tree_util.tree_leaves(trees))
+
+
+_solve_jit = eqx.filter_jit(solve_impacts)
+
+
+def _with_contacts(system, unilateral, restitution):
+    from ..mechanics.impacts import WithContacts
+
+    if unilateral is not None:
+        return WithContacts(system, unilateral, 1.0 if restitution is None else restitution)
+    if restitution is not None:
+        if getattr(system, "restitution", None) is None:
+            raise TypeError(f"{type(system).__name__} has no restitution field to replace")
+        return eqx.tree_at(lambda s: s.restitution, system, jnp.asarray(restitution, float))
+    return system
+
+
+_STATUS_MSG = {
+    1: ("max_impacts={N} impacts reached before t1 (a Zeno sequence? raise rest_velocity so that "
+        "chattering ends in resting contact, or raise max_impacts, or pass on_max_impacts='stop')"),
+    2: "max_steps={S} exhausted (raise max_steps, or loosen rtol/atol)",
+    3: "the state became NaN/inf (check the model's domain and the contact geometry)",
+    4: ("the solve stalled: no progress in time over many iterations (a Zeno point: impacts "
+        "accumulating; raise rest_velocity so that chattering ends in resting contact)"),
+}
+
+
+def simulate_impacts(
+    system,
+    x0,
+    t1,
+    *,
+    t0=0.0,
+    saveat=None,
+    unilateral=None,
+    restitution=None,
+    solver=None,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    dt0=None,
+    dtmax=None,
+    max_steps: int = 100_000,
+    max_impacts: int = 1000,
+    on_max_impacts: str = "raise",
+    rest_velocity: float = 1e-6,
+    graze_tol: float = 1e-12,
+    release_tol: float = 1e-10,
+    event_samples: int = 4,
+    constraint_tol: float = 1e-8,
+) -> ImpactTrajectory:
+    """Integrate a system with one-sided constraints psi(t, q) >= 0 through its impacts.
+
+    Parameters
+    ----------
+    system : a ``ConstrainedLagrangian`` (state x = (q, q')) that declares
+        ``unilateral_constraints(t, q)`` and ``restitution`` (the impact scenes do), or
+        any ``ConstrainedLagrangian`` together with ``unilateral=psi``.
+    x0 : initial state (q, q') with psi(t0, q0) >= 0 and the permanent constraints met.
+        A contact with psi ~ 0, Psi ~ 0 and a compressive multiplier starts persistent.
+    t1, t0 : time interval [s].
+    saveat : int (that many equally spaced saved times, default 101) or 1-D array of
+        times in [t0, t1]; 0: save nothing.
+    unilateral : psi(t, q) -> (k,) gaps (admissible where >= 0), added to ``system``
+        by ``nhjax.mechanics.WithContacts``.
+    restitution : alpha in [0, 1], scalar or (k,): overrides the system's.
+    solver : a diffrax Runge-Kutta solver with dense output (default ``diffrax.Dopri5()``).
+    rtol, atol : tolerances of the ``diffrax.PIDController``.
+    dtmax : largest step [s] (default: ``system.event_resolution`` if it has one).
+    max_steps : budget of loop iterations (steps and root-finding steps).
+    max_impacts : size of the impact record and bound on the number of impacts.
+    on_max_impacts : "raise" (IntegrationError) or "stop" (return the motion up to the
+        max_impacts-th impact; ``t_final`` is its time).
+    rest_velocity : rebound normal velocity below which a contact comes to rest
+        (persistent contact); see the module docstring ("Rules").
+    graze_tol, release_tol : detection thresholds for gaps (psi units) and for the
+        multipliers of persistent contacts (force units).
+    event_samples : dense-output samples per step at which events are looked for.
+    constraint_tol : largest violation of psi >= 0 and of the permanent constraints
+        accepted in x0.
+
+    Returns an ``ImpactTrajectory``. Jit, vmap and forward-mode differentiation go
+    through (then failures become ``equinox.error_if`` runtime errors); for batches
+    see ``simulate_impacts_batch``; the pure per-member function is ``solve_impacts``.
+    """
+    owner = "simulate_impacts"
+    choice("on_max_impacts", on_max_impacts, ("raise", "stop"), owner=owner)
+    for name, v in (("max_impacts", max_impacts), ("max_steps", max_steps), ("event_samples", event_samples)):
+        integer(name, v, minimum=1, owner=owner)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, constraint_tol=constraint_tol, owner=owner)
+    t0, t1 = time_span(t0, t1, owner=owner)
+    system = _with_contacts(system, unilateral, restitution)
+    x0 = jnp.asarray(x0, float)
+    n = getattr(system, "n", None)
+    if n is None or not hasattr(system, "dynamics_terms"):
+        raise TypeError(
+            f"simulate_impacts needs a ConstrainedLagrangian (mass matrix, permanent constraints "
+            f"and contact multipliers by autodiff), got {type(system).__name__}"
+        )
+    if x0.shape != (2 * n,):
+        raise StateError(f"{owner}: x0 has shape {x0.shape}; {type(system).__name__} expects (q, q') of shape "
+                         f"({2 * n},): pass the positions and then the velocities", "x0")
+    k = _num_contacts(system, t0, x0)
+    concrete = _concrete(system, x0, t0, t1)
+    if concrete:
+        in_range("restitution", restitution_of(system, k), 0.0, 1.0, owner=owner,
+                 what="coefficient of restitution of every contact")
+        if not np.all(np.isfinite(np.asarray(x0))):
+            raise StateError(f"{owner}: initial state x0 contains NaN or inf; pass finite numbers", "x0")
+        q0, qd0 = x0[:n], x0[n:]
+        psi0 = np.asarray(system.unilateral_constraints(jnp.asarray(t0, float), q0))
+        if np.any(psi0 < -constraint_tol):
+            a = int(np.argmin(psi0))
+            raise ConstraintViolationError(
+                f"unilateral[{a}]", float(-psi0[a]), constraint_tol,
+                "the initial configuration is on the forbidden side psi < 0",
+            )
+        res = np.asarray(system._all_velocity_constraints(jnp.asarray(t0, float), q0, qd0))
+        if res.size and np.max(np.abs(res)) > constraint_tol:
+            raise ConstraintViolationError("permanent", float(np.max(np.abs(res))), constraint_tol)
+    if saveat is None:
+        saveat = 101
+    if isinstance(saveat, (int, np.integer)) and not isinstance(saveat, bool) and saveat == 0:
+        ts = None  # no saved times
+    else:
+        check_saveat(saveat, t0, t1, owner=owner)
+        if isinstance(saveat, (int, np.integer)):
+            ts = jnp.linspace(t0, t1, int(saveat))
+        else:
+            ts = jnp.asarray(saveat, float)
+    if dtmax is None:
+        dtmax = getattr(system, "event_resolution", None)
+    arr = lambda v: None if v is None else jnp.asarray(v, float)  # noqa: E731 (no recompiles)
+    traj = _solve_jit(
+        system, x0, arr(t1), t0=arr(t0), ts=ts, solver=solver, rtol=arr(rtol), atol=arr(atol),
+        dt0=arr(dt0), dtmax=arr(dtmax), max_steps=int(max_steps), max_impacts=int(max_impacts),
+        rest_velocity=arr(rest_velocity), graze_tol=arr(graze_tol), release_tol=arr(release_tol),
+        event_samples=int(event_samples),
+    )
+    fatal = (2, 3, 4) if on_max_impacts == "stop" else (1, 2, 3, 4)
+    if not _concrete(traj.status):
+        bad = jnp.isin(traj.status, jnp.asarray(fatal))
+        out = eqx.error_if((traj.x_final, traj.xs), bad, "nhjax.simulate_impacts: the solve failed "
+                           "(max_impacts reached, max_steps exhausted or NaN/inf); see ImpactTrajectory.status")
+        return eqx.tree_at(lambda tr: (tr.x_final, tr.xs), traj, out)
+    status = int(traj.status)
+    if status in fatal:
+        msg = _STATUS_MSG[status].format(N=max_impacts, S=max_steps)
+        raise IntegrationError(msg, float(traj.t_final), trajectory=traj)
+    return traj
+
+
+def _leading(tree, axes, lo, hi, B):
+    """Members lo..hi-1 (clipped to B - 1: a short last chunk repeats the last member)."""
+    idx = np.minimum(np.arange(lo, hi), B - 1)
+
+    def take(a, ax):
+        return a if ax is None else jnp.take(jnp.asarray(a), idx, axis=ax)
+
+    return jax.tree_util.tree_map(take, tree, axes, is_leaf=lambda a: a is None)
+
+
+@eqx.filter_jit
+def _batch_chunk(system, x0, t1, sys_axes, x_axis, options):
+    def member(s, x):
+        return solve_impacts(s, x, t1, **options)
+
+    return eqx.filter_vmap(member, in_axes=(sys_axes, x_axis))(system, x0)
+
+
+def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size: int = 32, workers=None,
+                           saveat=0, **options) -> ImpactTrajectory:
+    """Many impact solves at once: ``solve_impacts`` vmapped over chunks of members, the
+    chunks run concurrently on ``workers`` threads (default: one per CPU core; XLA
+    releases the GIL while a compiled chunk runs). A vmapped chunk runs as long as its
+    slowest member (e.g. a chattering one), so small chunks (default 32) waste less.
+
+    ``in_axes``: dict with keys "system" and "x0" (vmap axes: 0 for batched, None for
+    shared). For the system also a list of field names whose arrays carry the member
+    axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
+    to vary only the amplitude, or a pytree of axes.
+    Default: x0 batched if it is 2-D, the system shared. ``saveat``: 0 (nothing saved,
+    default) or an int / 1-D array of save times as in ``simulate_impacts``; other
+    keyword arguments are ``solve_impacts``'s. No exceptions: every member's ``status``
+    says how it ended. Returns an ``ImpactTrajectory`` whose fields have a leading
+    member axis.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    owner = "simulate_impacts_batch"
+    _, t1 = time_span(options.get("t0", 0.0), t1, owner=owner)
+    chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
+    if saveat != 0:
+        check_saveat(saveat, options.get("t0", 0.0), t1, owner=owner)
+    solver_settings(rtol=options.get("rtol"), atol=options.get("atol"), dt0=options.get("dt0"), owner=owner)
+    try:
+        x0 = jnp.asarray(x0, float)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"{owner}: x0 must be an array of real numbers: {e}", "x0") from None
+    if not np.all(np.isfinite(np.asarray(x0))):
+        raise StateError(f"{owner}: x0 contains NaN or inf; pass finite numbers", "x0")
+    in_axes = dict(in_axes or {})
+    x_axis = in_axes.get("x0", 0 if x0.ndim == 2 else None)
+    sys_axes = in_axes.get("system", None)
+    if isinstance(sys_axes, (list, tuple)) and all(isinstance(nm, str) for nm in sys_axes):
+        names = tuple(sys_axes)
+        for nm in names:
+            if not hasattr(system, nm):
+                raise ParameterError(f"{owner}: in_axes['system'] names '{nm}', which {type(system).__name__} "
+                                     "does not have", "in_axes", in_axes)
+        sys_axes = jax.tree_util.tree_map(lambda _: None, system)
+        sys_axes = eqx.tree_at(lambda s: tuple(getattr(s, nm) for nm in names), sys_axes,
+                               tuple(0 for _ in names), is_leaf=lambda a: a is None)
+    elif sys_axes == 0:
+        sys_axes = jax.tree_util.tree_map(lambda a: 0 if eqx.is_array(a) else None, system)
+    elif sys_axes is None:
+        sys_axes = jax.tree_util.tree_map(lambda _: None, system)
+    sizes = set()
+    if x_axis is not None:
+        sizes.add(x0.shape[x_axis])
+    for a, ax in zip(jax.tree_util.tree_leaves(system), jax.tree_util.tree_leaves(sys_axes, is_leaf=lambda a: a is None)):
+        if ax is not None:
+            sizes.add(jnp.shape(a)[ax])
+    if len(sizes) != 1:
+        raise ParameterError(f"{owner}: batched inputs must share one batch size; got sizes {sorted(sizes)} "
+                             "(check in_axes: which of system / x0 carry a leading member axis)", "in_axes", in_axes)
+    B = sizes.pop()
+    if isinstance(saveat, (int, np.integer)):
+        ts = None if saveat == 0 else jnp.linspace(options.get("t0", 0.0), t1, int(saveat))
+    else:
+        ts = jnp.asarray(saveat, float)
+    if "dtmax" not in options:
+        sys0 = jax.tree_util.tree_map(lambda a, ax: a if ax is None else jnp.take(a, 0, axis=ax),
+                                      system, sys_axes, is_leaf=lambda a: a is None)
+        options["dtmax"] = getattr(sys0, "event_resolution", None)
+    opts = {k: (jnp.asarray(v, float) if isinstance(v, float) else v) for k, v in options.items()}
+    opts["ts"] = ts
+    workers = int(workers or os.cpu_count() or 1)
+    chunk = int(min(chunk_size, max(1, -(-B // workers))))
+    starts = list(range(0, B, chunk))
+
+    def run(lo):
+        s = _leading(system, sys_axes, lo, lo + chunk, B)
+        x = x0 if x_axis is None else _leading(x0, x_axis, lo, lo + chunk, B)
+        return jax.block_until_ready(_batch_chunk(s, x, jnp.asarray(t1, float), sys_axes, x_axis, opts))
+
+    first = run(starts[0])  # compile once, then the rest concurrently
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        rest = list(pool.map(run, starts[1:]))
+    outs = [first] + rest
+    arrays, static = eqx.partition(outs[0], eqx.is_array)
+    merged = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a])[:B],
+                                    *[eqx.partition(o, eqx.is_array)[0] for o in outs])
+    return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)

@@ -1,0 +1,257 @@
+"""Issue 14: every case a user met at the edges raises a named, documented error (or
+works correctly), in the words the issue asked for. Property-based tests and the
+coverage of every public entry point are in test_validation_properties.py."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import controls
+import nhjax
+from nhjax import errors as E
+from nhjax.integrate.simulate import _check_inputs
+from nhjax.lie import so3
+from nhjax.mechanics import AbstractSystem, Lagrangian
+from nhjax.scenes import (
+    BallOnPlatter,
+    FallingCat,
+    FallingCatKinematic,
+    ShellWithTop,
+    SkateSE2,
+)
+
+OSC = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 0.5 * 4.0 * q @ q)  # omega = 2
+
+
+def test_errors_are_named_and_keep_builtin_classes():
+    for cls in (E.ParameterError, E.StateError, E.GroupMembershipError, E.ConstraintViolationError,
+                E.ProjectionError, E.TimeSpanError, E.ProblemError):
+        assert issubclass(cls, E.NhjaxError) and issubclass(cls, ValueError)
+    assert issubclass(E.ControlError, ValueError) and issubclass(E.ControlError, TypeError)
+    assert issubclass(E.ResourceError, MemoryError)
+    assert controls.ProblemError is E.ProblemError
+
+
+def test_user_lagrangian_with_a_state_of_the_wrong_length():
+    two = Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 0.5 * q @ q)
+    for bad in (jnp.ones(3), jnp.ones(5), jnp.ones((2, 2))):
+        with pytest.raises(E.StateError, match=r"length 2 n = 4 .* n = 2 coordinates"):
+            nhjax.simulate(two, bad, 1.0)
+    with pytest.raises(E.ParameterError, match="n must be at least 1"):
+        Lagrangian(n=0, T=lambda q, qd: qd @ qd)
+    with pytest.raises(E.ParameterError, match="T must be a callable"):
+        Lagrangian(n=1, T=3.0)
+    with pytest.raises(E.ParameterError, match="no force"):
+        Lagrangian(n=1, T=lambda q, qd: qd @ qd, control_dim=1)
+
+
+def test_lie_lagrangian_velocity_of_the_wrong_length_and_off_group_poses():
+    sk = SkateSE2()
+    (g,), v = sk.initial_state(speed=1.0, phi_dot=0.5)
+    for bad in (v[:2], jnp.ones(4)):
+        with pytest.raises(E.StateError, match=r"velocity\) must have 3 entries for SkateSE2"):
+            nhjax.simulate(sk, ((g,), bad), 1.0)
+    with pytest.raises(E.StateError, match="structure of SkateSE2's state"):
+        nhjax.simulate(sk, jnp.zeros(6), 1.0)
+    scaled = g.at[:2, :2].multiply(2.0)
+    with pytest.raises(E.GroupMembershipError, match=r"x0\[0\]\[0\] is not on SE\(2\).*3\.000e\+00") as err:
+        nhjax.simulate(sk, ((scaled,), v), 1.0)
+    assert err.value.name == "x0[0][0]" and err.value.residual == pytest.approx(3.0)
+    flipped = g.at[:2, 0].multiply(-1.0)
+    with pytest.raises(E.GroupMembershipError, match="det = -1"):
+        nhjax.simulate(sk, ((flipped,), v), 1.0, project=True)
+
+
+def test_falling_cat_parameters_named_by_the_argument_passed():
+    with pytest.raises(E.ParameterError, match="mass must be positive, got 0") as err:
+        FallingCat.from_dimensions(mass=0)
+    assert err.value.name == "mass"
+    with pytest.raises(E.ParameterError, match="mass must be positive, got -1"):
+        FallingCat.from_dimensions(mass=-1)  # not "I1 must be positive" (a derived quantity)
+    with pytest.raises(E.ParameterError, match="length must be positive, got -1"):
+        FallingCat.from_dimensions(length=-1)
+    with pytest.raises(E.ParameterError, match="radius must be positive, got -0.25"):
+        FallingCat.from_dimensions(radius=-0.25)
+    with pytest.raises(E.ParameterError, match="I1 must be positive, got -1"):
+        FallingCatKinematic(I1=-1.0)
+    with pytest.raises(E.ParameterError, match="lam must be finite and positive.*got nan"):
+        FallingCatKinematic(lam=float("nan"))
+    with pytest.raises(E.ParameterError, match=r"B must be positive, got -2.0 \(element \(3,\)"):
+        FallingCat(B=np.array([1.0, 2.0, 3.0, -2.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0]))  # batched: the member
+    with pytest.raises(E.ParameterError, match="theta must be finite"):
+        FallingCat().initial_state(float("inf"))
+
+
+def test_a_system_that_needs_a_control_says_so():
+    cat = FallingCatKinematic()
+    with pytest.raises(E.ControlError, match="FallingCatKinematic needs a control.*pass control="):
+        nhjax.simulate(cat, cat.initial_state(0.5), 1.0)
+
+    class NeedsInput(AbstractSystem):  # a user system that does not declare requires_control
+        control_dim = 1
+        state_names = ("x",)
+
+        def vector_field(self, t, x, u):
+            return u[:1] * x
+
+    with pytest.raises(E.ControlError, match="NeedsInput needs a control"):
+        nhjax.simulate(NeedsInput(), jnp.ones(1), 1.0)
+    with pytest.raises(E.ControlError, match="returned NaN or inf"):
+        nhjax.simulate(cat, cat.initial_state(0.5), 1.0, control=lambda t, x: jnp.full(2, jnp.nan))
+
+
+def test_shell_with_top_attitudes_and_radius():
+    robot = ShellWithTop()
+    (xy, Rsh, Rt), v = robot.initial_state(shell_omega=(1.0, 0.0, 0.0))
+    with pytest.raises(E.GroupMembershipError, match=r"x0\[0\]\[2\] is not on SO\(3\)"):
+        nhjax.simulate(robot, ((xy, Rsh, 2.0 * Rt), v), 0.1)
+    with pytest.raises(E.GroupMembershipError, match="shell_attitude is not on SO"):
+        robot.initial_state(shell_attitude=2.0 * np.eye(3))
+    with pytest.raises(E.ParameterError, match="Rs must be finite and positive.*got inf"):
+        ShellWithTop(Rs=float("inf"))
+    with pytest.raises(E.ParameterError, match=r"It must be symmetric positive definite"):
+        ShellWithTop(It=np.diag([1e-2, -1e-2, 1e-2]))
+    # project=True replaces R^T R = 4 I by the nearest rotation (R itself) and the run goes on
+    R = so3.exp(jnp.array([0.3, -0.2, 0.5]))
+    x0 = robot.initial_state(top_attitude=R)
+    (xy, Rsh, Rt), v = x0
+    checked, _, _ = _check_inputs(robot, None, ((xy, Rsh, 2.0 * Rt), v), 0.0, 1e-8, True)
+    np.testing.assert_allclose(checked[0][2], R, atol=1e-14)
+
+
+def test_project_true_brings_a_norm_two_quaternion_onto_s3():
+    ball = BallOnPlatter()
+    x = ball.initial_state(u1=1.0, u2=0.5, u1_dot=0.2, u2_dot=1.0, spin=0.3)
+    bad = x.at[3:7].multiply(2.0)
+    with pytest.raises(E.ConstraintViolationError, match="position.*Pass project=True"):
+        nhjax.simulate(ball, bad, 1.0)
+    xp, _, _ = _check_inputs(ball, None, bad, 0.0, 1e-8, True)
+    assert abs(float(jnp.linalg.norm(xp[3:7])) - 1.0) < 1e-14  # on S^3 (four Newton steps left 1e-7)
+    res = ball.constraints(0.0, xp)
+    assert max(float(jnp.max(jnp.abs(r))) for r in res.values()) < 1e-12
+    np.testing.assert_allclose(xp[:3], x[:3], atol=1e-14)  # the contact and centre are untouched
+    # a state the projection cannot reach: the error does not ask for project=True again
+    class Stubborn(AbstractSystem):
+        state_names = ("a", "b")
+
+        def vector_field(self, t, x, u):
+            return jnp.zeros(2)
+
+        def constraints(self, t, x):
+            return {"circle": (x @ x - 1.0)[None]}
+
+    with pytest.raises(E.ProjectionError, match="did not converge.*defines no project") as err:
+        nhjax.simulate(Stubborn(), jnp.array([2.0, 0.0]), 1.0, project=True)
+    assert "Pass project=True" not in str(err.value)
+
+
+def test_project_converged_reports_the_residual_reached():
+    ball = BallOnPlatter()
+    bad = ball.initial_state().at[3:7].multiply(2.0)
+    one_round = eqx.filter_jit(lambda b, x: b.project(0.0, x))(ball, bad)  # four Newton steps: not yet on S^3
+    assert abs(float(jnp.linalg.norm(one_round[3:7])) - 1.0) > 1e-9
+    xp, res, rounds = eqx.filter_jit(lambda b, x: b.project_converged(0.0, x))(ball, bad)
+    assert float(res) < 1e-13 and 1 < int(rounds) < 10
+    assert float(res) == pytest.approx(float(ball.constraint_residual(0.0, xp)))
+
+
+def test_traced_checks_are_runtime_errors_with_the_same_words():
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8)
+    run = jax.jit(lambda x: nhjax.simulate(cat, x, 1.0, saveat=2).xs)
+    with pytest.raises(Exception, match="initial state x0 contains NaN or inf"):
+        jax.block_until_ready(run(x0.at[1].set(jnp.nan)))
+    ball = BallOnPlatter()
+    xb = ball.initial_state()
+    check = jax.jit(lambda x: _check_inputs(ball, None, x, 0.0, 1e-8, False)[0])
+    np.testing.assert_allclose(check(xb), xb)
+    with pytest.raises(Exception, match="violates constraint 'position'.*project=True"):
+        jax.block_until_ready(check(xb.at[3:7].multiply(2.0)))
+    span = jax.jit(lambda t1: nhjax.simulate(OSC, jnp.array([1.0, 0.0]), t1, saveat=2).xs)
+    np.testing.assert_allclose(span(jnp.pi)[-1], [1.0, 0.0], atol=1e-6)  # a period of omega = 2
+    with pytest.raises(Exception, match="t1 must be greater than t0"):
+        jax.block_until_ready(span(-1.0))
+
+
+def test_time_spans_and_saved_times():
+    x0 = jnp.array([1.0, 0.0])
+    for t1, words in ((np.inf, "finite time, got inf"), (np.nan, "finite time, got nan"),
+                      (0.0, "empty time span"), (-1.0, "reversed time span")):
+        with pytest.raises(E.TimeSpanError, match=words):
+            nhjax.simulate(OSC, x0, t1)
+    with pytest.raises(E.TimeSpanError, match="at least 2"):
+        nhjax.simulate(OSC, x0, 1.0, saveat=1)
+    with pytest.raises(E.TimeSpanError, match="float"):
+        nhjax.simulate(OSC, x0, 1.0, saveat=11.0)
+    with pytest.raises(E.TimeSpanError, match="NaN or inf"):
+        nhjax.simulate(OSC, x0, 1.0, saveat=jnp.array([0.0, jnp.nan]))
+    with pytest.raises(E.TimeSpanError, match="non-empty"):
+        nhjax.simulate(OSC, x0, 1.0, saveat=jnp.zeros(0))
+    with pytest.raises(E.ParameterError, match="rtol must be positive"):
+        nhjax.simulate(OSC, x0, 1.0, rtol=0.0)
+    with pytest.raises(E.ParameterError, match="max_steps must be at least 1"):
+        nhjax.simulate(OSC, x0, 1.0, max_steps=0)
+
+
+def test_memory_is_checked_before_allocating():
+    x0 = jnp.array([1.0, 0.0])
+    with pytest.raises(E.ResourceError, match="saving 100000000000 times.*save fewer times") as err:
+        nhjax.simulate(OSC, x0, 1.0, saveat=10**11)
+    assert err.value.need > err.value.available > 0
+    loss = lambda x: nhjax.simulate(OSC, x, 1.0, saveat=2, adjoint=nhjax.DiscreteAdjoint(max_steps=10**11)).xs[-1, 0]  # noqa: E731
+    with pytest.raises(E.ResourceError, match="differentiated solve recording max_steps=100000000000"):
+        jax.grad(loss)(x0)
+
+
+class _DoubleIntegrator(AbstractSystem):
+    control_dim = 1
+    state_names = ("q", "v")
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([x[1], u[0]])
+
+
+def _effort(t, x, u):
+    return 0.5 * u @ u
+
+
+def test_ocp_refuses_bad_problems_at_construction():
+    di = _DoubleIntegrator()
+    for T in (np.inf, 0.0, -1.0, np.nan):
+        with pytest.raises(controls.ProblemError, match="horizon T must be positive and finite"):
+            controls.OCP(di, jnp.zeros(2), T, running_cost=_effort)
+    with pytest.raises(controls.ProblemError, match="does not fit"):
+        controls.OCP(di, jnp.zeros(3), 1.0, running_cost=_effort)
+    with pytest.raises(controls.ProblemError, match="x0 contains NaN or inf at 'v'"):
+        controls.OCP(di, jnp.array([0.0, jnp.inf]), 1.0, running_cost=_effort)
+    with pytest.raises(controls.ProblemError, match=r"input 0 has u_lower = 1 >= u_upper = -1"):
+        controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort, u_lower=1.0, u_upper=-1.0)
+    with pytest.raises(controls.ProblemError, match="u_lower contains NaN"):
+        controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort, u_lower=jnp.nan, u_upper=1.0)
+    with pytest.raises(controls.ProblemError, match="running_cost must be a callable"):
+        controls.OCP(di, jnp.zeros(2), 1.0, running_cost=2.0)
+    with pytest.raises(controls.ProblemError, match="outside the chart"):
+        controls.OCP(FallingCatKinematic(), jnp.zeros(3), 1.0, running_cost=_effort)
+    ocp = controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort)
+    with pytest.raises(controls.ProblemError, match=r"covers \[0, 0.5\] but the problem's horizon is \[0, 1\]"):
+        controls.solve_direct(ocp, controls.PiecewiseLinear(4, 0.5, 1))
+    with pytest.raises(controls.ProblemError, match="rtol must be positive"):
+        controls.solve_direct(ocp, controls.PiecewiseLinear(4, 1.0, 1), rtol=-1.0)
+    with pytest.raises(controls.ProblemError, match="guess must be finite"):
+        controls.solve_direct(ocp, controls.PiecewiseLinear(4, 1.0, 1), guess=jnp.full(5, jnp.nan))
+
+
+def test_pontryagin_names_a_terminal_constraint_that_is_nan_at_the_start():
+    """psi(x) = sqrt(x_q - 5) is undefined where the initial guess's extremal ends (x_q = 0):
+    the error blames the terminal constraint, not the vector field."""
+    ocp = controls.OCP(_DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=_effort,
+                       terminal_constraints=lambda x: jnp.sqrt(x[:1] - 5.0))
+    with pytest.raises(controls.ProblemError, match=r"terminal_constraints\(x\(T\)\) is NaN/inf at the start") as err:
+        controls.solve_pontryagin(ocp)
+    assert "vector field" not in str(err.value)
+    with pytest.raises(controls.ProblemError, match="p0_guess must be finite"):
+        controls.solve_pontryagin(ocp, p0_guess=jnp.array([jnp.nan, 0.0]))
+    with pytest.raises(controls.ProblemError, match="solver must be one of"):
+        controls.solve_pontryagin(ocp, solver="bfgs")
