@@ -224,4 +224,4 @@ def test_near_collinear_shapes_stop_cleanly():
     assert err.value.guard in ("locked_inertia", "collinear") and 0.49 < err.value.t < 0.5
     assert 0 < float(err.value.trajectory.x_end[1][2]) < 1e-3
     with pytest.raises(nhjax.ChartSingularityError, match="already outside"):
-        nhjax.simulate(cat, cat.initial_state([0.3, 0.2, 0.0]), 1.0)
+        nhjax.simulate(cat, cat.initial_state([0.3, 0.2, 0.0]), 1.0, control=lambda t, x: jnp.zeros(3))

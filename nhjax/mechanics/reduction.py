@@ -97,6 +97,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
+from ..errors import ParameterError
 from ..lie import se2, so3
 from ..lie.spaces import Euclidean, SO3Body
 from .system import AbstractSystem
@@ -246,10 +248,10 @@ class SO2(Symmetry):
 
     def __init__(self, axis=None):
         if axis is not None:
-            a = np.asarray(axis, float) if not isinstance(axis, jax.core.Tracer) else None
-            if a is not None and (a.shape != (3,) or abs(np.linalg.norm(a) - 1) > 1e-12):
-                raise ValueError(f"SO2(axis=...) must be a unit 3-vector, got {axis!r}")
-            axis = jnp.asarray(axis, float)
+            a = V.real("axis", axis, owner="SO2", what="unit 3-vector of the rotation axis")
+            if not isinstance(a, jax.core.Tracer) and (a.shape != (3,) or abs(float(jnp.linalg.norm(a)) - 1) > 1e-12):
+                raise ParameterError(f"SO2(axis=...) must be a unit 3-vector, got {axis!r}", "axis", axis)
+            axis = a
         self.axis = axis
 
     @property
@@ -321,13 +323,32 @@ def _symmetry(group):
         return group
     if isinstance(group, str) and group in _GROUPS:
         return _GROUPS[group]()
-    raise ValueError(
+    raise ParameterError(
         f"group={group!r}: give a Symmetry (SO3(), SE3(), SO2(), SO2(axis=...), SE2()) "
-        f"or one of {sorted(_GROUPS)}"
+        f"or one of {sorted(_GROUPS)}", "group", group
     )
 
 
 # ---------------------------------------------------------------------------- bodies
+def _check_inertias(J, given):
+    """Planar moments >= 0; spatial tensors symmetric positive semidefinite (zero: a
+    point mass; the kinetic energy is then >= 0, as for ``RigidBody``)."""
+    if J.ndim == 1:
+        if not np.all(J >= 0):
+            raise ParameterError(f"Bodies: inertias must be non-negative [kg m^2], got {J.tolist()}",
+                                 "inertias", given)
+        return
+    scale = max(float(np.abs(J).max()), 1e-300)
+    for i, Ji in enumerate(J):
+        if not np.allclose(Ji, Ji.T, rtol=0.0, atol=1e-12 * scale):
+            raise ParameterError(f"Bodies: inertias[{i}] must be symmetric, got {Ji.tolist()}", "inertias", given)
+        ev = np.linalg.eigvalsh(0.5 * (Ji + Ji.T))
+        if ev[0] < -1e-12 * scale:
+            raise ParameterError(
+                f"Bodies: inertias[{i}] must be positive semidefinite (a rigid body, or zero for a point "
+                f"mass), got principal moments {ev.tolist()}", "inertias", given)
+
+
 class Bodies(eqx.Module):
     """Masses [kg] and inertias about the centres of mass [kg m^2] of n bodies.
 
@@ -342,21 +363,26 @@ class Bodies(eqx.Module):
     inertias: jax.Array
 
     def __init__(self, masses, inertias=None, spatial=None):
-        m = jnp.asarray(masses, float)
+        m = V.positive("masses", masses, allow_zero=True, owner="Bodies", what="masses of the bodies [kg]")
         if m.ndim != 1 or m.shape[0] == 0:
-            raise ValueError(f"masses must be a non-empty 1-D array [kg], got shape {m.shape}")
-        if not isinstance(masses, jax.core.Tracer) and not (np.all(np.asarray(m) >= 0) and float(np.sum(m)) > 0):
-            raise ValueError(f"masses must be >= 0 with a positive total, got {np.asarray(m)}")
+            raise ParameterError(f"Bodies: masses must be a non-empty 1-D array [kg], got shape {m.shape}",
+                                 "masses", masses)
+        if not isinstance(m, jax.core.Tracer) and not float(jnp.sum(m)) > 0:
+            raise ParameterError(f"Bodies: masses must be >= 0 with a positive total, got {np.asarray(m)}",
+                                 "masses", masses)
         n = m.shape[0]
         if inertias is None:
             if spatial is None:
-                raise ValueError("give inertias, or spatial=True/False for point masses")
+                raise ParameterError("Bodies: give inertias, or spatial=True/False for point masses",
+                                     "inertias", inertias)
             inertias = jnp.zeros((n, 3, 3)) if spatial else jnp.zeros(n)
-        J = jnp.asarray(inertias, float)
+        J = V.real("inertias", inertias, owner="Bodies", what="inertias about the centres of mass [kg m^2]")
         if J.shape not in ((n,), (n, 3, 3)):
-            raise ValueError(
-                f"inertias must have shape ({n},) (planar) or ({n}, 3, 3) (spatial), got {J.shape}"
-            )
+            raise ParameterError(
+                f"Bodies: inertias must have shape ({n},) (planar) or ({n}, 3, 3) (spatial), got {J.shape}",
+                "inertias", inertias)
+        if not isinstance(J, jax.core.Tracer):
+            _check_inertias(np.asarray(J), inertias)
         self.masses, self.inertias = m, J
 
     @property
@@ -385,6 +411,15 @@ _REG_HINTS = {
     "coordinates are degenerate here (a singular chart of the shape map) or do not move "
     "any mass.",
 }
+
+
+def _vec_arg(name, value, n, owner, what):
+    """A finite vector of n entries (a scalar for n = 1)."""
+    a = V.real(name, value, owner=owner, what=what)
+    if not isinstance(a, jax.core.Tracer) and a.size != n:
+        raise ParameterError(f"{owner}: {name} must have {n} entries ({what}), got shape {tuple(a.shape)}",
+                             name, value)
+    return a.reshape(-1)
 
 
 class _ShapeForces(eqx.Module):
@@ -445,28 +480,39 @@ class ReducedSystem(AbstractSystem):
 
     def _setup(self, bodies, shape_map, group, shape_dim, *, momentum=None, inputs=None,
                control_dim=None, shape_names=None, chart_guard=None, guard_eps=1e-6):
+        owner = type(self).__name__
         sym = _symmetry(group)
         if not isinstance(bodies, Bodies):
-            raise TypeError(f"bodies must be a nhjax.mechanics.reduction.Bodies, got {type(bodies).__name__}")
+            raise ParameterError(f"{owner}: bodies must be a nhjax.mechanics.reduction.Bodies, "
+                                 f"got {type(bodies).__name__}", "bodies", bodies)
         if bodies.spatial != sym.spatial:
             where = "spatial (inertias (n, 3, 3))" if sym.spatial else "planar (inertias (n,))"
-            raise ValueError(f"group {type(sym).__name__} needs {where} bodies")
-        k = int(shape_dim)
-        if k < 1:
-            raise ValueError(f"shape_dim must be >= 1, got {shape_dim}")
-        if momentum not in (None, "zero", "spatial", "body"):
-            raise ValueError(f"momentum={momentum!r}: use 'zero', 'spatial' or 'body'")
+            raise ParameterError(f"{owner}: group {type(sym).__name__} needs {where} bodies", "group", group)
+        V.function("shape_map", shape_map, owner=owner, signature="r -> (orientations, positions) or positions")
+        V.function("chart_guard", chart_guard, owner=owner, signature="r -> {name: value}", optional=True)
+        k = V.integer("shape_dim", shape_dim, minimum=1, owner=owner, what="number of shape coordinates")
+        V.choice("momentum", momentum, (None, "zero", "spatial", "body"), owner=owner)
         if inputs is None:
             inputs, control_dim = _ShapeForces(), k if control_dim is None else control_dim
         elif control_dim is None:
-            raise ValueError("with inputs=..., give control_dim (the number of inputs u)")
+            raise ParameterError(f"{owner}: with inputs=..., give control_dim (the number of inputs u)",
+                                 "control_dim", control_dim)
+        V.function("inputs", inputs, owner=owner, signature="(r, u) -> (tau_r, wrenches)")
+        n_inputs = V.integer("control_dim", control_dim, minimum=0, owner=owner, what="number of inputs u")
+        if shape_names is not None and (isinstance(shape_names, str) or not isinstance(shape_names, (tuple, list))
+                                        or not all(isinstance(n, str) for n in shape_names)):
+            raise ParameterError(f"{owner}: shape_names must be a tuple of {k} strings, got {shape_names!r}",
+                                 "shape_names", shape_names)
         names = tuple(shape_names) if shape_names is not None else tuple(f"r{i}" for i in range(k))
         if len(names) != k:
-            raise ValueError(f"shape_names has {len(names)} names for shape_dim = {k}")
+            raise ParameterError(f"{owner}: shape_names has {len(names)} names for shape_dim = {k}",
+                                 "shape_names", shape_names)
+        guard_eps = V.in_range("guard_eps", guard_eps, 0.0, 1.0, hi_closed=False, owner=owner, shape=(),
+                               as_float=True, what="margin of the locked_inertia guard")
         self.bodies, self.shape_map, self.symmetry = bodies, shape_map, sym
         self.inputs, self.chart_guard = inputs, chart_guard
-        self.n_inputs = int(control_dim)
-        self.k, self.shape_names, self.guard_eps = k, names, float(guard_eps)
+        self.n_inputs = n_inputs
+        self.k, self.shape_names, self.guard_eps = k, names, guard_eps
         out = jax.eval_shape(shape_map, jax.ShapeDtypeStruct((k,), jnp.float64))
         self.positions_only = not isinstance(out, (tuple, list))
         self._check_shape_map(out)
@@ -474,19 +520,20 @@ class ReducedSystem(AbstractSystem):
         tau_r, wrench = jax.eval_shape(inputs, jax.ShapeDtypeStruct((k,), f64),
                                        jax.ShapeDtypeStruct((self.n_inputs,), f64))
         if tau_r is not None and tau_r.shape != (k,):
-            raise ValueError(f"inputs(r, u) must return shape forces of shape ({k},), got {tau_r.shape}")
+            raise ParameterError(f"{owner}: inputs(r, u) must return shape forces of shape ({k},), "
+                                 f"got {tau_r.shape}", "inputs", inputs)
         w = 6 if sym.spatial else 3
         if wrench is not None and wrench.shape != (bodies.n, w):
-            raise ValueError(f"inputs(r, u) must return body wrenches of shape ({bodies.n}, {w}), "
-                             f"got {wrench.shape}")
+            raise ParameterError(f"{owner}: inputs(r, u) must return body wrenches of shape ({bodies.n}, {w}), "
+                                 f"got {wrench.shape}", "inputs", inputs)
         # a body wrench (thruster) is external: it changes the momentum
         self.external = wrench is not None
         if momentum is None:
             momentum = "spatial" if self.external else "zero"
         if momentum == "zero" and self.external:
-            raise ValueError(
-                "momentum='zero' cannot hold with body forces (thrusters change the momentum): "
-                "use momentum='spatial' or 'body'"
+            raise ParameterError(
+                f"{owner}: momentum='zero' cannot hold with body forces (thrusters change the momentum): "
+                "use momentum='spatial' or 'body'", "momentum", momentum
             )
         self.momentum = momentum
 
@@ -494,18 +541,19 @@ class ReducedSystem(AbstractSystem):
         n, d = self.bodies.n, 3 if self.symmetry.spatial else 2
         pos = out if self.positions_only else out[1]
         want_rot = (n, 3, 3) if self.symmetry.spatial else (n,)
+        owner = type(self).__name__
         if pos.shape != (n, d):
-            raise ValueError(
-                f"shape_map(r) must give positions of shape ({n}, {d}) for {n} bodies, got {pos.shape}"
-            )
+            raise ParameterError(
+                f"{owner}: shape_map(r) must give positions of shape ({n}, {d}) for {n} bodies, got {pos.shape}",
+                "shape_map", self.shape_map)
         if not self.positions_only and out[0].shape != want_rot:
-            raise ValueError(
-                f"shape_map(r) must give orientations of shape {want_rot}, got {out[0].shape}"
-            )
+            raise ParameterError(
+                f"{owner}: shape_map(r) must give orientations of shape {want_rot}, got {out[0].shape}",
+                "shape_map", self.shape_map)
         if self.positions_only and not isinstance(self.bodies.inertias, jax.core.Tracer):
             if np.any(np.asarray(self.bodies.inertias) != 0):
-                raise ValueError("shape_map returns positions only, but the bodies have inertia: "
-                                 "return (orientations, positions)")
+                raise ParameterError(f"{owner}: shape_map returns positions only, but the bodies have inertia: "
+                                     "return (orientations, positions)", "shape_map", self.shape_map)
 
     # ----------------------------------------------------------------- names
     @property
@@ -554,24 +602,44 @@ class ReducedSystem(AbstractSystem):
         """State from the shape r, its rate r' (default 0), the group element (default
         identity: (R, c) for SO(3)/SE(3), else the coordinates c) and the spatial
         momentum J (default 0; converted to mu for momentum='body')."""
-        r = jnp.asarray(shape, float).reshape(-1)
-        if r.shape != (self.k,):
-            raise ValueError(f"shape must have {self.k} entries {self.shape_names}, got {r.shape}")
-        rd = jnp.zeros(self.k) if shape_rate is None else jnp.asarray(shape_rate, float).reshape(-1)
-        R, c = self.symmetry.identity()
-        if group is not None:
-            if self.symmetry.matrix:
-                R, c = group if isinstance(group, tuple) else (group, c)
-                R, c = jnp.asarray(R, float), jnp.asarray(c, float)
-            else:
-                c = jnp.asarray(group, float).reshape(-1)
+        owner = f"{type(self).__name__}.initial_state"
+        r = self._shape_arg("shape", shape, owner)
+        rd = jnp.zeros(self.k) if shape_rate is None else self._shape_arg("shape_rate", shape_rate, owner)
+        R, c = self._group_arg(group, owner)
         m = None
         if self.momentum != "zero":
-            J = jnp.zeros(self.symmetry.dim) if momentum is None else jnp.asarray(momentum, float)
+            J = jnp.zeros(self.symmetry.dim) if momentum is None else _vec_arg(
+                "momentum", momentum, self.symmetry.dim, owner, "spatial momentum J")
             m = J if self.momentum == "spatial" else self.symmetry.to_body(R, c, J)
-        elif momentum is not None and not np.allclose(np.asarray(momentum), 0):
-            raise ValueError("momentum='zero' system: the momentum is zero by construction")
+        elif momentum is not None:
+            J = V.real("momentum", momentum, owner=owner, what="momentum (zero for this system)")
+            if not isinstance(J, jax.core.Tracer) and not np.allclose(np.asarray(J), 0):
+                raise ParameterError(f"{owner}: momentum={momentum!r}, but this is a momentum='zero' system: "
+                                     "the momentum is zero by construction; build it with momentum='spatial' "
+                                     "to carry one", "momentum", momentum)
         return self.join(R, c, r, rd, m)
+
+    def _shape_arg(self, name, value, owner):
+        """A shape-space vector (k,) (finite); a scalar is accepted for k = 1."""
+        r = V.real(name, value, owner=owner, what=f"shape coordinates {self.shape_names}")
+        if not isinstance(r, jax.core.Tracer) and r.size != self.k:
+            raise ParameterError(f"{owner}: {name} must have {self.k} entries {self.shape_names}, "
+                                 f"got shape {tuple(r.shape)}", name, value)
+        return r.reshape(-1)
+
+    def _group_arg(self, group, owner):
+        """(R, c) of the group element: identity by default; (R, c) or R for SO(3)/SE(3),
+        with R checked on SO(3); else the flat coordinates (angle / x, y, angle)."""
+        R, c = self.symmetry.identity()
+        if group is None:
+            return R, c
+        if self.symmetry.matrix:
+            Rg, cg = group if isinstance(group, tuple) else (group, c)
+            R = V.rotation("group", Rg, owner=owner)
+            c = _vec_arg("group", cg, c.shape[0], owner, "position b of the group element [m]")
+        else:
+            c = _vec_arg("group", group, c.shape[0], owner, f"group coordinates {self.symmetry.coord_names}")
+        return R, c
 
     # ---------------------------------------------------------- kinematics
     def reference_poses(self, r):
@@ -893,6 +961,8 @@ class ReducedKinematic(ReducedSystem):
     ``optimal_hamiltonian(r, P)`` = P^T M(r)^-1 P / 2.
     """
 
+    requires_control: ClassVar[bool] = True  # the inputs are the shape velocities
+
     def __init__(self, bodies, shape_map, group, shape_dim, *, shape_names=None, chart_guard=None,
                  guard_eps=1e-6):
         self._setup(bodies, shape_map, group, shape_dim, momentum="zero", shape_names=shape_names,
@@ -912,13 +982,10 @@ class ReducedKinematic(ReducedSystem):
         return (R, f) if self.symmetry.matrix else f
 
     def initial_state(self, shape, group=None):
-        R, c = self.symmetry.identity()
-        if group is not None:
-            if self.symmetry.matrix:
-                R, c = group if isinstance(group, tuple) else (group, c)
-            else:
-                c = jnp.asarray(group, float).reshape(-1)
-        return self.join(R, c, jnp.asarray(shape, float))
+        owner = f"{type(self).__name__}.initial_state"
+        r = self._shape_arg("shape", shape, owner)
+        R, c = self._group_arg(group, owner)
+        return self.join(R, c, r)
 
     def vector_field(self, t, x, u):
         R, c, r, _, _ = self.split(x)
@@ -965,9 +1032,21 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     (i, j = plane); the holonomy of the loop is exp(-that) for an abelian
     connection (exactly), and to leading order in the loop's size otherwise.
     """
-    i, j = plane
-    c = jnp.asarray(centre, float)
-    b = jnp.zeros(system.k) if base is None else jnp.asarray(base, float)
+    owner = "curvature_integral"
+    if not isinstance(system, ReducedSystem):
+        raise ParameterError(f"{owner}: system must be a nhjax.mechanics.ReducedSystem, got "
+                             f"{type(system).__name__}", "system", system)
+    V.function("loop", loop, owner=owner, signature="alpha -> (2,) point of the shape plane")
+    try:
+        i, j = (V.integer("plane", p, minimum=0, owner=owner) for p in plane)
+    except (TypeError, ValueError):
+        raise ParameterError(f"{owner}: plane must be two shape indices (i, j), got {plane!r}", "plane", plane) from None
+    if i == j or max(i, j) >= system.k:
+        raise ParameterError(f"{owner}: plane must be two distinct shape indices below k = {system.k}, "
+                             f"got {plane!r}", "plane", plane)
+    n = V.integer("n", n, minimum=1, owner=owner, what="Gauss-Legendre nodes per direction")
+    c = _vec_arg("centre", centre, 2, owner, "point of the shape plane the region is star-shaped about")
+    b = jnp.zeros(system.k) if base is None else _vec_arg("base", base, system.k, owner, "shape of the plane's origin")
     xg, wg = np.polynomial.legendre.leggauss(n)
     S, Aa = np.meshgrid(0.5 * (xg + 1), np.pi * (xg + 1), indexing="ij")
     W = np.outer(0.5 * wg, np.pi * wg)
