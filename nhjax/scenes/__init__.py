@@ -32,7 +32,7 @@ REGISTRY = {
     "FallingCatLagrangian": (FallingCatLagrangian, "the cat derived by the engine from two rigid bodies"),
     "FallingCatSmooth": (FallingCatSmooth, "velocity-controlled cat in coordinates smooth at the straight cat (w, phi)"),
     "FallingCatReduced": (FallingCatReduced, "the cat rebuilt by the general reduction (two rigid bodies, SO(2) about e2, by autodiff)"),
-    "NBodyCat": (NBodyCat, "n point masses at zero angular momentum, SO(3) reduction by autodiff from a shape map (seed 000, 3.9-4.7)"),
+    "NBodyCat": (NBodyCat, "n point masses at zero angular momentum, SO(3) reduction by autodiff from a shape map (default: three bodies, Jacobi section) (seed 000, 3.9-4.7)"),
     "ThreeBodyCat": (ThreeBodyCat, "three point masses, Jacobi vectors and shape coordinates (2.6)-(2.7), zero angular momentum (seed 000)"),
     "PlanarChain": (PlanarChain, "N hinged rigid bodies in the plane, joint torques and thrusters, SE(2) reduction (seed 001, (9a)-(12))"),
     "PlanarChainUnreduced": (PlanarChainUnreduced, "the same chain as N bodies in R^3N with hinge constraints (engine check)"),

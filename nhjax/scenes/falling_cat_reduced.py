@@ -27,11 +27,10 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..lie import so3
 from ..mechanics.reduction import _LOCKED_HINT, SO2, Bodies, ReducedSystem
-from .falling_cat import _CHART_HINT
+from .falling_cat import _CHART_HINT, _cat_parameters, _chart_eps, _state_args
 
 __all__ = ["FallingCatReduced"]
 
@@ -65,10 +64,9 @@ class FallingCatReduced(ReducedSystem):
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
                  chart_eps=1e-3, momentum="zero"):
-        for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)):
-            if not isinstance(v, jax.core.Tracer) and not np.all(np.asarray(v) > 0):
-                raise ValueError(f"{name} must be positive, got {v}")
-        I1, lam, B, mass = (jnp.asarray(v, float) for v in (I1, lam, B, mass))
+        # checked as FallingCat checks them (finite, > 0, named as passed)
+        I1, lam, B, mass = _cat_parameters("FallingCatReduced", I1, lam, B, mass)
+        chart_eps = _chart_eps("FallingCatReduced", chart_eps)
         J = jnp.diag(jnp.stack([I1, lam * I1, I1]))
         bodies = Bodies(jnp.stack([mass, mass]), jnp.stack([J, J]))
         l = jnp.sqrt(B * I1 / mass)  # noqa: E741
@@ -77,4 +75,7 @@ class FallingCatReduced(ReducedSystem):
 
     def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
-        return ReducedSystem.initial_state(self, [theta, chi], [theta_dot, chi_dot], [psi])
+        theta, chi, psi, theta_dot, chi_dot = _state_args(
+            "FallingCatReduced", theta=theta, chi=chi, psi=psi, theta_dot=theta_dot, chi_dot=chi_dot)
+        return ReducedSystem.initial_state(self, jnp.stack([theta, chi]), jnp.stack([theta_dot, chi_dot]),
+                                           psi.reshape(1))

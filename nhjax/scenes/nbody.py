@@ -53,23 +53,64 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import ParameterError
 from ..mechanics.reduction import _LOCKED_HINT, SO2, SO3, Bodies, ReducedSystem
+from ._validate import function, in_range, integer, positive
 
 __all__ = ["JacobiSection", "NBodyCat", "ThreeBodyCat"]
+
+
+_JACOBI_HINT = (
+    "the Jacobi section (2.6)-(2.7) places r along e1 and is singular where r = 0 "
+    "(particles 1 and 2 coincide, w on the negative w1 axis); the shape space itself is smooth "
+    "there: relabel the particles so that another pair stays apart, or lower chart_eps.")
 
 
 class NBodyCat(ReducedSystem):
     """n point masses, reduced by rotations about their centre of mass.
 
-    Parameters: ``masses`` (n,) [kg]; ``shape_map(q)`` -> positions (n, 3) (or (n, 2)
-    with ``planar=True``) of the particles for shape q (the centre of mass is
-    removed automatically); ``shape_dim``; ``momentum`` "zero" (default; seed 000)
-    or "spatial"/"body"; inputs: generalized forces on the shape coordinates.
+    Parameters: ``masses`` (n,) [kg], each > 0 (n >= 3 in space, n >= 2 in the plane);
+    ``shape_map(q)`` -> positions (n, 3) (or (n, 2) with ``planar=True``) [m] of the
+    particles for shape q (the centre of mass is removed automatically); ``shape_dim``
+    (required with a ``shape_map``); ``momentum`` "zero" (default; seed 000) or
+    "spatial"/"body"; inputs: generalized forces on the shape coordinates.
+
+    Defaults: the seed's three-body example, three unit masses [kg] placed by the
+    Jacobi section (2.6)-(2.7) (``JacobiSection``, shape w = (w1, w2, w3), with its
+    chart guards ``jacobi_chart`` and, in space, ``collinear`` at margin 1e-6), as
+    ``ThreeBodyCat``; ``masses`` alone may then be any three positive masses. Any
+    other n needs its own ``shape_map`` and ``shape_dim``.
     """
 
-    def __init__(self, masses, shape_map: Callable, shape_dim, *, planar=False, momentum="zero",
-                 shape_names=None, chart_guard=None, guard_eps=1e-6):
-        bodies = Bodies.point_masses(jnp.asarray(masses, float), spatial=not planar)
+    guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT, "collinear": _LOCKED_HINT,
+                                   "jacobi_chart": _JACOBI_HINT}
+
+    def __init__(self, masses=(1.0, 1.0, 1.0), shape_map: Callable | None = None, shape_dim=None, *,
+                 planar=False, momentum="zero", shape_names=None, chart_guard=None, guard_eps=1e-6):
+        owner = type(self).__name__
+        m = positive("masses", masses, owner=owner, what="masses of the particles [kg]")
+        least = 2 if planar else 3
+        if m.ndim != 1 or m.shape[0] < least:
+            raise ParameterError(
+                f"{owner}: masses must be a 1-D array of at least {least} masses [kg] ({'in the plane' if planar else 'in space'}: "
+                f"fewer particles are always collinear, where rotations do not act freely), got shape {m.shape}",
+                "masses", masses)
+        function("shape_map", shape_map, owner=owner, signature="q -> positions (n, 3) or (n, 2)", optional=True)
+        if shape_map is None:
+            if m.shape[0] != 3:
+                raise ParameterError(
+                    f"{owner}: {m.shape[0]} masses need a shape_map (and shape_dim); the default shape map "
+                    "is the three-body Jacobi section", "shape_map", shape_map)
+            if shape_dim is not None and integer("shape_dim", shape_dim, owner=owner) != 3:
+                raise ParameterError(f"{owner}: the default (Jacobi) shape map has shape_dim 3, got {shape_dim!r}",
+                                     "shape_dim", shape_dim)
+            shape_map, shape_dim = JacobiSection(m, planar), 3
+            shape_names = ("w1", "w2", "w3") if shape_names is None else shape_names
+            chart_guard = _JacobiChart(1e-6, planar) if chart_guard is None else chart_guard
+        elif shape_dim is None:
+            raise ParameterError(f"{owner}: with a shape_map, give shape_dim (the number of shape coordinates)",
+                                 "shape_dim", shape_dim)
+        bodies = Bodies.point_masses(m, spatial=not planar)
         self._setup(bodies, shape_map, SO2() if planar else SO3(), shape_dim, momentum=momentum,
                     shape_names=shape_names, chart_guard=chart_guard, guard_eps=guard_eps)
 
@@ -143,21 +184,11 @@ class ThreeBodyCat(NBodyCat):
     ``planar=True``: in the plane, rotations SO(2), w3 = 2 r x s of either sign.
     """
 
-    guard_hints: ClassVar[dict] = {
-        "locked_inertia": _LOCKED_HINT,
-        "collinear": _LOCKED_HINT,
-        "jacobi_chart": "the Jacobi section (2.6)-(2.7) places r along e1 and is singular where r = 0 "
-        "(particles 1 and 2 coincide, w on the negative w1 axis); the shape space itself is smooth "
-        "there: relabel the particles so that another pair stays apart, or lower chart_eps.",
-    }
-
     def __init__(self, masses=(1.0, 1.0, 1.0), *, planar=False, momentum="zero", chart_eps=1e-6,
                  guard_eps=1e-6):
-        m = jnp.asarray(masses, float)
-        if m.shape != (3,):
-            raise ValueError(f"ThreeBodyCat takes 3 masses, got shape {m.shape}")
-        if not isinstance(masses, jax.core.Tracer) and not np.all(np.asarray(m) > 0):
-            raise ValueError(f"masses must be positive, got {np.asarray(m)}")
+        m = positive("masses", masses, owner="ThreeBodyCat", shape=(3,), what="masses of the three particles [kg]")
+        chart_eps = in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner="ThreeBodyCat", shape=(),
+                             as_float=True, what="margin of the jacobi_chart and collinear guards")
         NBodyCat.__init__(self, m, JacobiSection(m, planar), 3, planar=planar, momentum=momentum,
                           shape_names=("w1", "w2", "w3"), chart_guard=_JacobiChart(float(chart_eps), planar),
                           guard_eps=guard_eps)

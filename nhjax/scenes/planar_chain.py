@@ -66,8 +66,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import ParameterError
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.reduction import SE2, SO2, Bodies, ReducedSystem, _rot2
+from ._validate import choice, positive, real
 
 __all__ = ["PlanarChain", "PlanarChainUnreduced", "two_body_closed_forms"]
 
@@ -105,10 +107,34 @@ class ChainInputs(eqx.Module):
         return tau, jnp.concatenate([f, jnp.zeros((F.shape[0], 1), u.dtype)], axis=1)
 
 
-def _positive(name, v):
-    a = np.asarray(v, float)
-    if not np.all(a > 0):
-        raise ValueError(f"{name} must be positive, got {a}")
+def _masses(owner, masses):
+    """Masses (N,) [kg], N >= 2, each finite and > 0."""
+    m = positive("masses", masses, owner=owner, what="masses of the bodies [kg]")
+    if m.ndim != 1 or m.shape[0] < 2:
+        raise ParameterError(f"{owner}: a chain needs at least 2 bodies, got masses={masses!r}", "masses", masses)
+    return m
+
+
+def _hinges(owner, name, value, N):
+    """Hinge points (N-1, 2) [m] in body frames, finite."""
+    h = real(name, value, owner=owner, what="hinge points in the body frames [m]")
+    if h.shape != (N - 1, 2):
+        raise ParameterError(f"{owner}: {name} must have shape ({N - 1}, 2) (one point per hinge) [m], "
+                             f"got {tuple(h.shape)}", name, value)
+    return h
+
+
+def _thruster_axes(owner, value, N):
+    """Body-fixed thrust directions (N, 2), finite and nonzero, normalized."""
+    ax = real("thruster_axes", value, owner=owner, what="body-fixed thrust directions")
+    if ax.shape != (N, 2):
+        raise ParameterError(f"{owner}: thruster_axes must have shape ({N}, 2), got {tuple(ax.shape)}",
+                             "thruster_axes", value)
+    norm = jnp.linalg.norm(ax, axis=1, keepdims=True)
+    if not isinstance(norm, jax.core.Tracer) and not np.all(np.asarray(norm) > 0):
+        raise ParameterError(f"{owner}: thruster_axes must be nonzero directions, got {np.asarray(ax).tolist()}",
+                             "thruster_axes", value)
+    return ax / norm
 
 
 class PlanarChain(ReducedSystem):
@@ -124,46 +150,35 @@ class PlanarChain(ReducedSystem):
     def __init__(self, masses=(1.0, 1.0, 1.0), inertias=None, lengths=None, hinge_out=None,
                  hinge_in=None, thrusters=False, thruster_axes=None, group="SE2", momentum=None,
                  reference="first"):
-        m = np.asarray(masses, float) if not isinstance(masses, jax.core.Tracer) else masses
-        N = len(m)
-        if N < 2:
-            raise ValueError(f"a chain needs at least 2 bodies, got masses={masses}")
-        if not isinstance(m, jax.core.Tracer):
-            _positive("masses", m)
-        if lengths is None:
-            lengths = np.ones(N)
-        if len(lengths) != N:
-            raise ValueError(f"lengths must have {N} entries (one per body), got {len(lengths)}")
-        L = jnp.asarray(lengths, float)
+        owner = "PlanarChain"
+        m = _masses(owner, masses)
+        N = m.shape[0]
+        L = jnp.ones(N) if lengths is None else positive("lengths", lengths, owner=owner, shape=(N,),
+                                                         what="link lengths, one per body [m]")
         if inertias is None:
-            inertias = jnp.asarray(m) * L**2 / 12.0
-        inertias = jnp.asarray(inertias, float)
-        if inertias.shape != (N,):
-            raise ValueError(f"inertias must have {N} entries [kg m^2], got shape {inertias.shape}")
-        ho = jnp.stack([L[:-1] / 2, jnp.zeros(N - 1)], 1) if hinge_out is None else jnp.asarray(hinge_out, float)
-        hi = jnp.stack([-L[1:] / 2, jnp.zeros(N - 1)], 1) if hinge_in is None else jnp.asarray(hinge_in, float)
-        for name, h in (("hinge_out", ho), ("hinge_in", hi)):
-            if h.shape != (N - 1, 2):
-                raise ValueError(f"{name} must have shape ({N - 1}, 2) (one point per hinge) [m], got {h.shape}")
-        if reference not in ("first", "mean"):
-            raise ValueError(f"reference must be 'first' or 'mean', got {reference!r}")
+            inertias = m * L**2 / 12.0
+        else:  # zero: a point mass on the chain (its hinge offsets still give it rotational inertia)
+            inertias = positive("inertias", inertias, allow_zero=True, owner=owner, shape=(N,),
+                                what="moments of inertia about the centres of mass [kg m^2]")
+        ho = jnp.stack([L[:-1] / 2, jnp.zeros(N - 1)], 1) if hinge_out is None else _hinges(owner, "hinge_out", hinge_out, N)
+        hi = jnp.stack([-L[1:] / 2, jnp.zeros(N - 1)], 1) if hinge_in is None else _hinges(owner, "hinge_in", hinge_in, N)
+        choice("reference", reference, ("first", "mean"), owner=owner)
+        if not isinstance(thrusters, (bool, np.bool_)):
+            raise ParameterError(f"{owner}: thrusters must be True or False, got {thrusters!r}", "thrusters", thrusters)
         if thruster_axes is not None:
             thrusters = True
-            ax = jnp.asarray(thruster_axes, float)
-            if ax.shape != (N, 2):
-                raise ValueError(f"thruster_axes must have shape ({N}, 2), got {ax.shape}")
-            ax = ax / jnp.linalg.norm(ax, axis=1, keepdims=True)
+            ax = _thruster_axes(owner, thruster_axes, N)
         else:
             ax = jnp.tile(jnp.array([[1.0, 0.0]]), (N, 1)) if thrusters else None
         group = {"SE2": SE2(), "SO2": SO2()}.get(group, group) if isinstance(group, str) else group
         if not isinstance(group, (SE2, SO2)) or group.spatial:
-            raise ValueError("group must be 'SE2' or 'SO2' (planar)")
+            raise ParameterError(f"{owner}: group must be 'SE2' or 'SO2' (planar), got {group!r}", "group", group)
         if thrusters and isinstance(group, SO2):
-            raise ValueError("thrusters move the centre of mass: use group='SE2'")
-        shape = ChainShape(jnp.asarray(m, float), ho, hi, reference)
+            raise ParameterError(f"{owner}: thrusters move the centre of mass: use group='SE2'", "group", group)
+        shape = ChainShape(m, ho, hi, reference)
         inputs = ChainInputs(ax, N - 1)
         names = tuple(f"phi{j + 1}" for j in range(N - 1))
-        self._setup(Bodies(jnp.asarray(m, float), inertias), shape, group, N - 1, momentum=momentum,
+        self._setup(Bodies(m, inertias), shape, group, N - 1, momentum=momentum,
                     inputs=inputs, control_dim=(N - 1) + (N if thrusters else 0), shape_names=names)
         self.reference = reference
 
@@ -180,12 +195,30 @@ class PlanarChain(ReducedSystem):
     def has_thrusters(self):
         return self.inputs.thruster_axes is not None
 
-    def initial_state(self, phi=None, phi_dot=None, pose=None, momentum=None):
-        """State from joint angles [rad] (default 0), their rates [rad/s], the pose of the
-        reference frame (x, y, angle) [m, m, rad] (SE2; SO2: angle) and the spatial
-        momentum (p_x, p_y, L) [kg m/s, kg m^2/s] (SE2) or L (SO2)."""
-        phi = jnp.zeros(self.k) if phi is None else phi
-        return ReducedSystem.initial_state(self, phi, phi_dot, pose, momentum)
+    def initial_state(self, phi=0.0, phi_dot=0.0, pose=None, momentum=None):
+        """State from joint angles [rad] (default 0: the straight chain), their rates
+        [rad/s] (default 0), each (N-1,) or one number for every joint, the pose of the
+        reference frame (x, y, angle) [m, m, rad] (SE2; SO2: angle; default 0) and the
+        spatial momentum (p_x, p_y, L) [kg m/s, kg m^2/s] (SE2) or L (SO2) (default 0)."""
+        owner = "PlanarChain.initial_state"
+        args = []
+        for name, v in (("phi", phi), ("phi_dot", phi_dot)):
+            v = 0.0 if v is None else v  # None: the default, as before
+            a = real(name, v, owner=owner, what=f"joint angles {self.shape_names} [rad]" if name == "phi"
+                     else "joint rates [rad/s]")
+            if a.ndim == 0:
+                a = jnp.full(self.k, a)
+            elif a.shape != (self.k,):
+                raise ParameterError(f"{owner}: {name} must have {self.k} entries (one per joint) or be one "
+                                     f"number, got shape {tuple(a.shape)}", name, v)
+            args.append(a)
+        if pose is not None:
+            ng = self.n_group
+            pose = real("pose", pose, owner=owner, what=f"pose {self.symmetry.coord_names} of the reference frame")
+            if pose.size != ng:
+                raise ParameterError(f"{owner}: pose must have {ng} entries {self.symmetry.coord_names}, "
+                                     f"got shape {tuple(pose.shape)}", "pose", pose)
+        return ReducedSystem.initial_state(self, args[0], args[1], pose, momentum)
 
     def body_poses(self, x):
         """(angles (N,), centres (N, 2)) of the bodies in space."""
@@ -215,7 +248,12 @@ class PlanarChainUnreduced(ConstrainedLagrangian):
     2(N-1) hinge constraints x_j + R(theta_j) hinge_out_j = x_{j+1} + R(theta_{j+1})
     hinge_in_j (position constraints, index-reduced and projected after each step),
     joint torques and thrusters as generalized forces; equations by the engine
-    (``nhjax.mechanics.ConstrainedLagrangian``). The independent check of ``PlanarChain``."""
+    (``nhjax.mechanics.ConstrainedLagrangian``). The independent check of ``PlanarChain``.
+
+    Parameters as ``PlanarChain`` (masses [kg], inertias [kg m^2] > 0, hinge points
+    [m], thrust directions); the defaults are ``PlanarChain()``'s: three uniform rods
+    of 1 kg and 1 m (I = 1/12 kg m^2) hinged end to end, no thrusters
+    (``PlanarChain().unreduced()`` builds the same model from any chain)."""
 
     masses: jax.Array
     inertias: jax.Array
@@ -225,11 +263,17 @@ class PlanarChainUnreduced(ConstrainedLagrangian):
     n: int = eqx.field(static=True)
     n_inputs: int = eqx.field(static=True)
 
-    def __init__(self, masses, inertias, hinge_out, hinge_in, thruster_axes=None):
-        self.masses, self.inertias = jnp.asarray(masses, float), jnp.asarray(inertias, float)
-        self.hinge_out, self.hinge_in = jnp.asarray(hinge_out, float), jnp.asarray(hinge_in, float)
-        self.thruster_axes = thruster_axes
+    def __init__(self, masses=(1.0, 1.0, 1.0), inertias=(1 / 12, 1 / 12, 1 / 12),
+                 hinge_out=((0.5, 0.0), (0.5, 0.0)), hinge_in=((-0.5, 0.0), (-0.5, 0.0)), thruster_axes=None):
+        owner = "PlanarChainUnreduced"
+        self.masses = _masses(owner, masses)
         N = self.masses.shape[0]
+        # > 0: the free bodies' mass matrix must be invertible for the engine's KKT solve
+        self.inertias = positive("inertias", inertias, owner=owner, shape=(N,),
+                                 what="moments of inertia about the centres of mass [kg m^2]")
+        self.hinge_out = _hinges(owner, "hinge_out", hinge_out, N)
+        self.hinge_in = _hinges(owner, "hinge_in", hinge_in, N)
+        self.thruster_axes = None if thruster_axes is None else _thruster_axes(owner, thruster_axes, N)
         self.n = 3 * N
         self.n_inputs = (N - 1) + (N if thruster_axes is not None else 0)
 
