@@ -20,10 +20,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nhjax import _validate as V
 from nhjax.mechanics.reduction import EllipseLoop, curvature_integral
 from nhjax.scenes.planar_chain import PlanarChain
 
-from ..problem import OCP
+from ..problem import OCP, ProblemError
 from .somersault import Effort, TerminalTarget
 
 __all__ = ["chain_reorientation", "chain_steering", "loop_guess", "loop_path", "loop_turn", "radius_for_turn"]
@@ -31,9 +32,16 @@ __all__ = ["chain_reorientation", "chain_steering", "loop_guess", "loop_path", "
 
 def _check_chain(chain, group, name):
     if not isinstance(chain, PlanarChain):
-        raise TypeError(f"{name} needs a nhjax.scenes.PlanarChain, got {type(chain).__name__}")
+        raise ProblemError(f"{name}: chain must be a nhjax.scenes.PlanarChain, got {type(chain).__name__}")
     if type(chain.symmetry).__name__ != group:
-        raise ValueError(f"{name} needs a PlanarChain with group='{group}', got {type(chain.symmetry).__name__}")
+        raise ProblemError(f"{name} needs a PlanarChain with group='{group}', got {type(chain.symmetry).__name__}")
+
+
+def _phi0(chain, phi0, owner):
+    """Joint angles at the start [rad] (k,), default 0, finite."""
+    if phi0 is None:
+        return jnp.zeros(chain.k)
+    return V.vector("phi0", phi0, chain.k, owner=owner, what="joint angles at the start and end [rad]")
 
 
 def chain_reorientation(chain: PlanarChain, turn, T, phi0=None) -> OCP:
@@ -41,8 +49,9 @@ def chain_reorientation(chain: PlanarChain, turn, T, phi0=None) -> OCP:
     angle = turn, phi = phi0, phi' = 0; cost int |u|^2 dt."""
     _check_chain(chain, "SO2", "chain_reorientation")
     if chain.momentum != "zero":
-        raise ValueError("chain_reorientation is posed at zero momentum (momentum='zero')")
-    phi0 = jnp.zeros(chain.k) if phi0 is None else jnp.asarray(phi0, float)
+        raise ProblemError("chain_reorientation is posed at zero momentum (momentum='zero')")
+    phi0 = _phi0(chain, phi0, "chain_reorientation")
+    turn = V.real("turn", turn, owner="chain_reorientation", shape=(), what="turn of the chain [rad]")
     x0 = chain.initial_state(phi0)
     target = x0.at[0].set(turn)
     return OCP(chain, x0, T, running_cost=Effort(), terminal_constraints=TerminalTarget(target))
@@ -52,12 +61,13 @@ def chain_steering(chain: PlanarChain, target, T, phi0=None) -> OCP:
     """Thrusters and joint torques, rest to rest: from the pose (0, 0, 0) to ``target`` =
     (x, y, angle) of the reference frame (body 1 at the centre of mass), joint angles
     back at ``phi0``, momentum zero at both ends; cost int |u|^2 dt."""
-    _check_chain(chain, "SE2", "steering")
+    _check_chain(chain, "SE2", "chain_steering")
     if not chain.has_thrusters:
-        raise ValueError("chain_steering needs a PlanarChain with thrusters (thrusters=True)")
-    phi0 = jnp.zeros(chain.k) if phi0 is None else jnp.asarray(phi0, float)
+        raise ProblemError("chain_steering needs a PlanarChain with thrusters (thrusters=True)")
+    phi0 = _phi0(chain, phi0, "chain_steering")
+    target = V.vector("target", target, 3, owner="chain_steering", what="target pose (x, y, angle) [m, m, rad]")
     x0 = chain.initial_state(phi0)
-    goal = x0.at[:3].set(jnp.asarray(target, float))
+    goal = x0.at[:3].set(target)
     return OCP(chain, x0, T, running_cost=Effort(), terminal_constraints=TerminalTarget(goal))
 
 
@@ -102,8 +112,8 @@ def radius_for_turn(chain: PlanarChain, turn, phi0, direction=(1.0, 1.0), r_max=
     bisection on the radius in (0, r_max] (raises if even r_max turns too little)."""
     full = loop_turn(chain, phi0, r_max, direction, 1)
     if abs(full) < abs(turn):
-        raise ValueError(
-            f"a circular joint loop of radius {r_max} rad from phi0 turns the chain by only "
+        raise ProblemError(
+            f"radius_for_turn: a circular joint loop of radius {r_max} rad from phi0 turns the chain by only "
             f"{abs(full):.3g} rad < |turn| = {abs(turn):.3g}: ask for less, or start elsewhere"
         )
     orientation = 1 if np.sign(full) == np.sign(turn) else -1
