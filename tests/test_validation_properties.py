@@ -93,6 +93,9 @@ def test_scene_constructors_name_bad_parameters(cls, data):
 
 REQUIRED = {  # valid values for arguments of initial_state without defaults
     "theta": 0.7, "omega": (0.1, -0.2, 0.3), "omega12": (0.2, 0.1),
+    # ReducedSystem.initial_state(shape, ...): NBodyCat() and ThreeBodyCat() (three bodies,
+    # Jacobi shape w), w = (0, 0, 1) kg m^2: the equilateral triangle of side 1 m for equal masses
+    "shape": (0.0, 0.0, 1.0),
 }
 
 
@@ -272,6 +275,14 @@ PROBES = {
     "nhjax.simulate_impacts_batch": lambda: nhjax.simulate_impacts_batch(
         scenes.BouncingBall(), jnp.array([[0.1, 0.0]]), -1.0),
     "nhjax.mechanics.WithContacts": lambda: mechanics.WithContacts(OSC, lambda t, q: q, restitution=1.5),
+    "nhjax.mechanics.Bodies": lambda: mechanics.Bodies([1.0, -1.0], [0.1, 0.1]),
+    "nhjax.mechanics.ReducedSystem": lambda: mechanics.ReducedSystem(
+        mechanics.Bodies([1.0, 1.0], [0.1, 0.1]), lambda r: (jnp.zeros(2), jnp.zeros((2, 2))), "SE2", 0),
+    "nhjax.mechanics.ReducedKinematic": lambda: mechanics.ReducedKinematic(
+        mechanics.Bodies([1.0, 1.0], [0.1, 0.1]), lambda r: (jnp.zeros(2), jnp.zeros((2, 2))), "SE2", 1,
+        guard_eps=np.nan),
+    "nhjax.mechanics.curvature_integral": lambda: mechanics.curvature_integral(
+        scenes.PlanarChain(group="SO2").kinematic(), lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)]), (np.nan, 0.5)),
     # the parametrizations are checked where they meet a problem (solve_direct/_newton)
     **{f"controls.{n}": (lambda n=n: controls.solve_direct(_ocp(), getattr(controls, n)(3, 0.5, 1)))
        for n in ("Chebyshev", "CubicSpline", "Fourier", "PiecewiseConstant", "PiecewiseLinear")},
@@ -280,6 +291,8 @@ PROBES = {
 # does not own, with the reason.
 EXEMPT = {
     "nhjax.lie": "module", "nhjax.mechanics": "module", "nhjax.scenes": "module",
+    "nhjax.mechanics.reduction": "module (its public names Bodies, ReducedSystem, ReducedKinematic, "
+    "curvature_integral are probed above)",
     "nhjax.Trajectory": "result container returned by simulate",
     "nhjax.BatchTrajectory": "result container returned by simulate_batch",
     "nhjax.ImpactTrajectory": "result container returned by simulate_impacts",

@@ -1,5 +1,14 @@
-"""Ready-made optimal-control tasks: the falling cat's somersault and the spherical robot's steering."""
+"""Ready-made optimal-control tasks: the falling cat's somersault, the spherical robot's steering,
+and the planar chain's reorientation and thruster steering."""
 
+from .planar_chain import (
+    chain_reorientation,
+    chain_steering,
+    loop_guess as chain_loop_guess,
+    loop_path as chain_loop_path,
+    loop_turn as chain_loop_turn,
+    radius_for_turn as chain_radius_for_turn,
+)
 from .somersault import (
     FreeWindingResult,
     fixed_theta_costates,
@@ -27,6 +36,12 @@ from .steering import (
 
 __all__ = [
     "FreeWindingResult",
+    "chain_loop_guess",
+    "chain_loop_path",
+    "chain_loop_turn",
+    "chain_radius_for_turn",
+    "chain_reorientation",
+    "chain_steering",
     "ReducedSteering",
     "ReducedSteeringTarget",
     "SteeringTarget",

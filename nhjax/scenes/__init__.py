@@ -11,7 +11,10 @@ from .falling_cat import (
 )
 from .ball_on_platter import BallOnPlatter
 from .bouncing_ball import BouncingBall
+from .falling_cat_reduced import FallingCatReduced
 from .moving_circle import ParticleInMovingCircle
+from .nbody import NBodyCat, ThreeBodyCat
+from .planar_chain import PlanarChain, PlanarChainUnreduced
 from .rolling_disk import RollingDisk, RollingDiskQuaternion
 from .shell_suslov_hinge import ShellWithSuslovHinge, ShellWithSuslovHingeZeroMomentum
 from .shell_with_top import ShellWithTopLagrangian, ShellWithTopReduced
@@ -28,6 +31,11 @@ REGISTRY = {
     "FallingCatAttitudes": (FallingCatAttitudes, "the torque-driven cat with both attitudes on SO(3) (RKMK)"),
     "FallingCatLagrangian": (FallingCatLagrangian, "the cat derived by the engine from two rigid bodies"),
     "FallingCatSmooth": (FallingCatSmooth, "velocity-controlled cat in coordinates smooth at the straight cat (w, phi)"),
+    "FallingCatReduced": (FallingCatReduced, "the cat rebuilt by the general reduction (two rigid bodies, SO(2) about e2, by autodiff)"),
+    "NBodyCat": (NBodyCat, "n point masses at zero angular momentum, SO(3) reduction by autodiff from a shape map (default: three bodies, Jacobi section) (seed 000, 3.9-4.7)"),
+    "ThreeBodyCat": (ThreeBodyCat, "three point masses, Jacobi vectors and shape coordinates (2.6)-(2.7), zero angular momentum (seed 000)"),
+    "PlanarChain": (PlanarChain, "N hinged rigid bodies in the plane, joint torques and thrusters, SE(2) reduction (seed 001, (9a)-(12))"),
+    "PlanarChainUnreduced": (PlanarChainUnreduced, "the same chain as N bodies in R^3N with hinge constraints (engine check)"),
     "Skate": (Skate, "knife-edge skate on an inclined plane, DAE in R^6 with closed-form motions (seed 002, 9.1-9.3)"),
     "SkateSE2": (SkateSE2, "the same skate on SE(2) (Hamel equations, RKMK)"),
     "BallOnPlatter": (BallOnPlatter, "homogeneous ball on a rotating platter in R^3 x S^3, exact circular path (seed 002, 9.14-9.19)"),
@@ -52,8 +60,12 @@ __all__ = [
     "FallingCatAttitudes",
     "FallingCatKinematic",
     "FallingCatLagrangian",
+    "FallingCatReduced",
     "FallingCatSmooth",
+    "NBodyCat",
     "ParticleInMovingCircle",
+    "PlanarChain",
+    "PlanarChainUnreduced",
     "REGISTRY",
     "RollingSphereWall",
     "RollingDisk",
@@ -67,5 +79,6 @@ __all__ = [
     "Skate",
     "SkateSE2",
     "SuslovBundle",
+    "ThreeBodyCat",
     "TwoWheeledCart",
 ]

@@ -6,6 +6,7 @@ from __future__ import annotations
 from .._validate import (  # noqa: F401
     GROUP_TOL,
     choice,
+    function,
     in_range,
     inertia_tensor,
     integer,

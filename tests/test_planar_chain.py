@@ -1,0 +1,232 @@
+"""PlanarChain (seed 001): the two-body closed forms of sec. 4.1, reduced against
+unreduced (the engine on R^3N with hinge constraints), momentum conservation,
+batches, gradients through the reduced dynamics, and the holonomy of shape loops
+against the curvature integral (Stokes)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax
+from nhjax.mechanics import curvature_integral
+from nhjax.scenes import PlanarChain
+from nhjax.scenes.planar_chain import two_body_closed_forms
+
+M1, M2, I1, I2, D1, D2 = 1.3, 0.7, 0.11, 0.05, 0.4, 0.25
+
+
+@jax.jit
+def _two_body(ch, phi, phid, mu, u):
+    r = phi[None]
+    x = ch.join(None, jnp.zeros(3), r, phid[None], mu)
+    tau_xi, tau_r = ch.generalized_forces(r, u)
+    return dict(M=ch.reduced_metric(r)[0, 0], A=ch.connection(r), I=ch.locked_inertia(r), G=ch.metric(r),
+                rdd=ch.shape_accelerations(x, u)[0], tau_xi=tau_xi, tau_r=tau_r[0])
+
+
+def _hand_forces(phi, u, axes):
+    """(tau_v (2), tau_theta, tau_phi) of joint torque T and thrusts F_i along axes (body
+    frames), in the mean-angle frame: written out from the geometry, not from the power."""
+    e = lambda a: np.array([np.cos(a), np.sin(a)])  # noqa: E731
+    ep = lambda a: np.array([-np.sin(a), np.cos(a)])  # noqa: E731
+    m = M1 + M2
+    t1, t2 = -phi / 2, phi / 2  # body angles in the reference frame
+    hinge = D1 * e(t1) + D2 * e(t2)
+    s = [-(M2 / m) * hinge, (M1 / m) * hinge]
+    dhinge = -(D1 / 2) * ep(t1) + (D2 / 2) * ep(t2)
+    ds = [-(M2 / m) * dhinge, (M1 / m) * dhinge]
+    T, F = u[0], u[1:]
+    f = [F[i] * np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]]) @ axes[i] for i, t in enumerate((t1, t2))]
+    tau_v = f[0] + f[1]
+    tau_th = sum(s[i][0] * f[i][1] - s[i][1] * f[i][0] for i in range(2))
+    tau_phi = T + sum(f[i] @ ds[i] for i in range(2))
+    return tau_v, tau_th, tau_phi
+
+
+def test_two_body_equals_seed_closed_forms(rng):
+    """M(phi), C(phi), N(phi), A_loc, the locked inertia, G and the forcing X tau of
+    sec. 4.1 (re-derived signs, see the module): M phi'' + C phi'^2 + N = X tau to 1e-12."""
+    axes = rng.normal(size=(2, 2))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    ch = PlanarChain(masses=(M1, M2), inertias=(I1, I2), hinge_out=[[D1, 0.0]], hinge_in=[[-D2, 0.0]],
+                     reference="mean", momentum="body", thruster_axes=axes)
+    m = M1 + M2
+    for phi in (0.3, 1.2, -2.0, 2.9):
+        cf = two_body_closed_forms(M1, M2, I1, I2, D1, D2, phi)
+        phid, mu, u = rng.normal(), rng.normal(size=3), rng.normal(size=3)
+        q = _two_body(ch, jnp.asarray(phi), jnp.asarray(phid), jnp.asarray(mu), jnp.asarray(u))
+        np.testing.assert_allclose(q["M"], cf["M"], rtol=1e-12)
+        np.testing.assert_allclose(q["A"][:, 0], [0.0, 0.0, cf["A_theta"]], atol=1e-13)
+        np.testing.assert_allclose(q["I"], np.diag([m, m, cf["S"]]), atol=1e-13)
+        # G of the seed (sec. 4.1): m I2, 1^T J 1, J-dagger (our sign: (I~2 - I~1)/2), J-ddagger
+        J = cf["J"]
+        np.testing.assert_allclose(q["G"][2, 3], (J[1, 1] - J[0, 0]) / 2, atol=1e-13)
+        np.testing.assert_allclose(q["G"][3, 3], (J[0, 0] + J[1, 1] - 2 * J[0, 1]) / 4, atol=1e-13)
+        tau_v, tau_th, tau_phi = _hand_forces(phi, u, axes)
+        np.testing.assert_allclose(q["tau_xi"], [*tau_v, tau_th], atol=1e-13)
+        np.testing.assert_allclose(q["tau_r"], tau_phi, atol=1e-13)
+        X_tau = tau_phi - tau_th * cf["A_theta"]
+        lhs = cf["M"] * float(q["rdd"]) + cf["C"] * phid**2 + cf["N_over_mu3sq"] * mu[2] ** 2
+        np.testing.assert_allclose(lhs, X_tau, atol=1e-12 * max(1.0, abs(X_tau)))
+
+
+CTRL = nhjax.Sinusoids(np.zeros(5), [0.3, -0.2, 0.1, 0.2, -0.1], [1.3, 0.8, 2.0, 1.1, 0.5], [0.0, 0.5, 1.0, 2.0, 3.0])
+NO_THRUST = nhjax.Sinusoids(np.zeros(5), [0.3, -0.2, 0.0, 0.0, 0.0], [1.3, 0.8, 2.0, 1.1, 0.5], [0.0, 0.5, 1.0, 2.0, 3.0])
+
+
+@pytest.fixture(scope="module")
+def thruster_chain():
+    ch = PlanarChain(masses=(1.0, 0.8, 1.2), lengths=(1.0, 0.7, 0.9), thrusters=True)
+    x0 = ch.initial_state([0.4, -0.6], [0.5, 0.2], pose=[0.1, -0.2, 0.3], momentum=[0.2, -0.1, 0.5])
+    return ch, x0
+
+
+def test_reduced_equals_unreduced_engine(thruster_chain):
+    """Joint torques and thrusters, nonzero momentum: body poses and velocities of the
+    reduced solution (SE(2), connection, reconstruction) = the engine's on R^9 with
+    hinge constraints, to 1e-9."""
+    ch, x0 = thruster_chain
+    tr = nhjax.simulate(ch, x0, 5.0, control=CTRL, rtol=1e-12, atol=1e-12, saveat=11, diagnostics=False)
+    un = ch.unreduced()
+    tu = nhjax.simulate(un, ch.unreduced_state(x0), 5.0, control=CTRL, rtol=1e-12, atol=1e-12, saveat=11,
+                        diagnostics=False)
+    yr = jax.jit(jax.vmap(ch.unreduced_state))(tr.xs)
+    np.testing.assert_allclose(yr, tu.xs, atol=1e-9)
+    assert float(jnp.abs(tr.xs[-1, :3] - x0[:3]).max()) > 0.5  # it moved
+
+
+def test_momentum_conserved_without_thrusters(thruster_chain):
+    """Joint torques only (thrust amplitudes 0, same compiled solve): the momentum map of
+    the reconstructed bodies stays at its initial value to 1e-12, while the chain moves."""
+    ch, x0 = thruster_chain
+    tr = nhjax.simulate(ch, x0, 5.0, control=NO_THRUST, rtol=1e-12, atol=1e-12, saveat=11, diagnostics=False)
+    J = jax.jit(jax.vmap(ch.momentum_map))(tr.xs)
+    np.testing.assert_allclose(J, np.broadcast_to([0.2, -0.1, 0.5], J.shape), atol=1e-12)
+    assert float(jnp.abs(tr.xs[-1, 3:5] - x0[3:5]).max()) > 0.1
+
+
+class Torques(eqx.Module):
+    amp: jax.Array
+
+    def __call__(self, t, x):
+        return self.amp * jnp.stack([jnp.sin(2.0 * t), jnp.cos(3.0 * t)])
+
+
+@pytest.fixture(scope="module")
+def zero_momentum_chain():
+    return PlanarChain(masses=(1.0, 1.5, 0.8), lengths=(1.0, 1.2, 0.8), group="SO2")
+
+
+def test_gradient_through_reduced_dynamics(zero_momentum_chain):
+    """d angle(T) / d torque amplitudes with DiscreteAdjoint = central differences."""
+    ch = zero_momentum_chain
+    x0 = ch.initial_state([0.5, -0.4])
+
+    def final_angle(amp):
+        tr = nhjax.simulate(ch, x0, 3.0, control=Torques(amp), rtol=1e-12, atol=1e-12, saveat=2,
+                            adjoint=nhjax.DiscreteAdjoint(), diagnostics=False)
+        return tr.xs[-1, 0]
+
+    amp = jnp.array([0.4, -0.3])
+    f = jax.jit(final_angle)
+    g = jax.jit(jax.grad(final_angle))(amp)
+    h = 1e-5
+    fd = [(f(amp.at[i].add(h)) - f(amp.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+    assert float(jnp.abs(g).min()) > 1e-3
+
+
+def test_batch_equals_single(zero_momentum_chain):
+    """simulate_batch on the reduced system: each member as simulate() alone (velocity
+    control along shape loops of different sizes: different step counts)."""
+    kin = zero_momentum_chain.kinematic()
+    X0 = jnp.stack([kin.initial_state([1.0 + a, 0.8]) for a in (1.4, 0.6, 0.1)])
+    ctrls = nhjax.stack([LoopRate(jnp.asarray(a), jnp.asarray(b)) for a, b in ((1.4, 1.0), (0.6, 0.9), (0.1, 0.05))])
+    tb = nhjax.simulate_batch(kin, X0, 1.0, control=ctrls, in_axes={"x0": 0, "control": 0}, rtol=1e-10,
+                              atol=1e-10, saveat=3, diagnostics=False)
+    for i in range(3):
+        ctrl = jax.tree_util.tree_map(lambda a: a[i], ctrls)
+        ts = nhjax.simulate(kin, X0[i], 1.0, control=ctrl, rtol=1e-10, atol=1e-10, saveat=3, diagnostics=False)
+        np.testing.assert_allclose(tb.xs[i], ts.xs, rtol=1e-12, atol=1e-12)
+
+
+class LoopRate(eqx.Module):
+    """Velocity control along the ellipse phi(t) = c + (a cos 2 pi t, b sin 2 pi t)."""
+
+    a: jax.Array
+    b: jax.Array
+
+    def __call__(self, t, x):
+        w = 2 * jnp.pi
+        return jnp.stack([-self.a * w * jnp.sin(w * t), self.b * w * jnp.cos(w * t)])
+
+
+def test_holonomy_of_large_loops_is_curvature_integral(zero_momentum_chain):
+    """Stokes: at zero momentum the chain's SO(2) connection is abelian, so a closed loop
+    of the joint angles turns the chain by exactly -(integral of F over the enclosed
+    region). Large ellipses (semi-axes up to 1.4 rad), one simulation each."""
+    kin = zero_momentum_chain.kinematic()
+    c = jnp.array([1.0, 0.8])
+    turns, predicted = [], []
+    for a, b in ((1.4, 1.0), (0.6, 0.9), (0.1, 0.05)):
+        x0 = kin.initial_state(c + jnp.array([a, 0.0]))
+        tr = nhjax.simulate(kin, x0, 1.0, control=LoopRate(jnp.asarray(a), jnp.asarray(b)), rtol=1e-12, atol=1e-12,
+                            saveat=2, diagnostics=False)
+        np.testing.assert_allclose(tr.xs[-1, 1:], x0[1:], atol=1e-9)  # the shape returned
+        loop = lambda al, a=a, b=b: c + jnp.stack([a * jnp.cos(al), b * jnp.sin(al)])  # noqa: E731
+        integral = curvature_integral(kin, loop, c, n=40)
+        turns.append(float(tr.xs[-1, 0] - x0[0]))
+        predicted.append(-float(integral[0]))
+    np.testing.assert_allclose(turns, predicted, rtol=1e-8, atol=1e-12)
+    assert abs(turns[0]) > 0.05  # a large loop turns the chain visibly
+
+
+@pytest.mark.slow
+def test_two_links_cannot_turn_by_a_loop():
+    """N = 2: the shape space is 1-D, a closed joint motion encloses no area and the chain
+    returns to its attitude (at zero momentum)."""
+    kin = PlanarChain(masses=(1.0, 2.0), lengths=(1.0, 0.5), group="SO2").kinematic()
+    ctrl = nhjax.Sinusoids([0.0], [2.0], [2 * np.pi], [0.0])
+    tr = nhjax.simulate(kin, kin.initial_state([0.3]), 1.0, control=ctrl, rtol=1e-12, atol=1e-12, saveat=21)
+    np.testing.assert_allclose(tr.xs[-1], tr.xs[0], atol=1e-10)
+    assert float(jnp.abs(tr.xs[:, 0]).max()) > 0.05  # it turned on the way
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="at least 2 bodies"):
+        PlanarChain(masses=(1.0,))
+    with pytest.raises(ValueError, match="masses must be positive"):
+        PlanarChain(masses=(1.0, -1.0))
+    with pytest.raises(ValueError, match="hinge_out must have shape"):
+        PlanarChain(masses=(1.0, 1.0), hinge_out=[[0.5, 0.0], [0.1, 0.0]])
+    with pytest.raises(ValueError, match="thrusters move the centre of mass"):
+        PlanarChain(thrusters=True, group="SO2")
+    with pytest.raises(ValueError, match="momentum='zero' cannot hold"):
+        PlanarChain(thrusters=True, momentum="zero")
+
+
+@pytest.mark.slow
+def test_reorientation_direct_and_pontryagin_agree():
+    """A 3-link chain turns by 0.2 rad at zero momentum, rest to rest, least int |u|^2:
+    the direct method (Newton over Chebyshev torques, from a Stokes-sized joint loop) and
+    Pontryagin shooting from its costates agree to 1e-6, and pmp_residual confirms the
+    Pontryagin extremal (and the direct optimum up to its Chebyshev restriction)."""
+    import controls
+    from controls.tasks import chain_loop_guess, chain_radius_for_turn, chain_reorientation
+
+    chain = PlanarChain(group="SO2")
+    phi0, T, turn = jnp.array([0.5, 0.5]), 3.0, 0.2
+    radius, orientation = chain_radius_for_turn(chain, turn, phi0)
+    ocp = chain_reorientation(chain, turn, T, phi0)
+    param = controls.Chebyshev(30, T, 2)
+    d = controls.solve_direct_newton(ocp, param, chain_loop_guess(chain, param, phi0, T, radius, orientation=orientation))
+    assert d.converged and d.violation < 1e-9
+    res = controls.pmp_residual(ocp, d.control)
+    assert res["stationarity"] < 1e-2
+    ind = controls.solve_pontryagin(ocp, res["ps"][-1], res["multipliers"], solver="lm")
+    assert ind.converged and ind.violation < 1e-9
+    assert abs(d.cost - ind.cost) / ind.cost < 1e-6
+    assert ind.cost <= d.cost * (1 + 1e-9)  # the Chebyshev restriction can only cost more
+    np.testing.assert_allclose(ind.trajectory.xs[-1, 0], turn, atol=1e-9)
