@@ -65,7 +65,9 @@ two positive roots of the cubic
 so the ball returns to the same greatest and least heights every radial period
 (``turning_points``, ``radial_period``, ``precession_per_period``). That is the
 motion of the seed's Fig. 9.5: the ball rolls up, turns, rolls down in an arc
-and climbs again, like the skate's cycloid (experiments/ball_in_cone.py).
+and climbs again, like the skate's cycloid (experiments/ball_in_cone.py). Unlike the skate's
+path it has no cusps: alpha' = L / D^2 keeps its sign (or vanishes throughout),
+so in (alpha, rho) the path is a chain of arcs between the two heights.
 
 Chart and guard: n, g, e_a need the azimuth of u, undefined on the axis (D = 0,
 where a ball with L = 0 would pass through the bottom). The guard ``axis``
