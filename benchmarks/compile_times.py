@@ -49,6 +49,8 @@ system = S.Skate(); x0 = system.initial_state(speed=1.0, phi_dot=2.0); t1 = 10.0
 system = S.SkateSE2(); x0 = system.initial_state(speed=1.0, phi_dot=2.0); t1 = 10.0""",
     "BallOnPlatter": """
 system = S.BallOnPlatter(); x0 = system.initial_state(); t1 = 10.0""",
+    "BallInCone": """
+system = S.BallInCone(); x0 = system.initial_state(rho=3.0, rho_dot=0.5, alpha_dot=0.3, spin=1.0); t1 = 10.0""",
     "RollingDisk": """
 system = S.RollingDisk(); x0 = system.initial_state(theta=0.3, phi_dot=0.4, theta_dot=0.2, psi_dot=1.5); t1 = 10.0""",
     "RollingDiskQuaternion": """

@@ -159,6 +159,14 @@ def case(name):
         x0 = b.initial_state()
         return b, x0, None, 2 * np.pi / float(b.turn_rate), "one orbit of the centre (2 pi / kappa)", \
             lambda t, x: float(jnp.max(jnp.abs(x[:2] - b.exact_solution(t, x0)[0])))
+    if name == "BallInCone":
+        b = S.BallInCone()
+        x0 = b.initial_state(rho=3.0, rho_dot=0.5, alpha_dot=0.3, spin=1.0)
+        d0 = float(jnp.hypot(x0[0], x0[1]))
+
+        def err(t, x):  # t1 is a whole number of radial periods: D (hence the height) is back to D(0)
+            return abs(float(jnp.hypot(x[0], x[1])) - d0)
+        return b, x0, None, b.radial_period(x0), "one radial period (greatest height to greatest height)", err
     if name in ("RollingDisk", "RollingDiskQuaternion"):
         d = S.RollingDisk()
         theta0, q = 0.25, 2.17080452

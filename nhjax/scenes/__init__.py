@@ -9,6 +9,7 @@ from .falling_cat import (
     FallingCatSmooth,
     ShapeLoopTorque,
 )
+from .ball_in_cone import BallInCone
 from .ball_on_platter import BallOnPlatter
 from .bouncing_ball import BouncingBall
 from .falling_cat_reduced import FallingCatReduced
@@ -39,6 +40,7 @@ REGISTRY = {
     "Skate": (Skate, "knife-edge skate on an inclined plane, DAE in R^6 with closed-form motions (seed 002, 9.1-9.3)"),
     "SkateSE2": (SkateSE2, "the same skate on SE(2) (Hamel equations, RKMK)"),
     "BallOnPlatter": (BallOnPlatter, "homogeneous ball on a rotating platter in R^3 x S^3, exact circular path (seed 002, 9.14-9.19)"),
+    "BallInCone": (BallInCone, "homogeneous ball rolling inside a cone in R^3 x S^3, three integrals, returns to the same height (seed 002, 9.20-9.29)"),
     "RollingDisk": (RollingDisk, "sharp-edged rolling disk in minimal coordinates, tilt guard, circular motions (seed 002, 9.37-9.44)"),
     "RollingDiskQuaternion": (RollingDiskQuaternion, "the same disk as a rigid body in (u, p) in R^3 x S^3 (seed 002, 9.39-9.40)"),
     "TwoWheeledCart": (TwoWheeledCart, "two-wheeled cart on an inclined plane, closed-form motion and cusps (seed 002, 9.45-9.52)"),
@@ -54,6 +56,7 @@ REGISTRY = {
 }
 
 __all__ = [
+    "BallInCone",
     "BallOnPlatter",
     "BouncingBall",
     "FallingCat",
