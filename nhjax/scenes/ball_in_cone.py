@@ -92,7 +92,7 @@ from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
 from ._validate import in_range, positive, real, unit_quaternion
-from .ball_on_platter import baumgarte_gains
+from .ball_on_platter import UP_STATE_NAMES, baumgarte_gains
 
 __all__ = ["BallInCone"]
 
@@ -123,10 +123,7 @@ class BallInCone(ConstrainedLagrangian):
     n: int = eqx.field(static=True, default=7)
     large_vector_field: ClassVar[bool] = False
 
-    state_names: ClassVar[tuple] = (
-        "u1", "u2", "u3", "p0", "p1", "p2", "p3",
-        "u1_dot", "u2_dot", "u3_dot", "p0_dot", "p1_dot", "p2_dot", "p3_dot",
-    )  # fmt: skip
+    state_names: ClassVar[tuple] = UP_STATE_NAMES
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"axis": _AXIS_HINT}
 
