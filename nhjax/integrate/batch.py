@@ -69,6 +69,7 @@ from .simulate import (
     _defines_power,
     _drifting_constraints,
     _finish,
+    _guard_of,
     _reports_accuracy,
     _solve,
 )
@@ -630,11 +631,3 @@ def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol, project):
     if stopped.any() and on_guard == "raise":
         fail("a chart guard stopped the solve (pass on_guard='stop' to keep these members)", stopped)
     return traj
-
-
-def _guard_of(system, names, x):
-    """The guard that stopped a member: the one closest to zero at its final state."""
-    if len(names) == 1:
-        return names[0]
-    g = system.guards(x)
-    return min(names, key=lambda n: abs(float(g[n])))

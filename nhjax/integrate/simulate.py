@@ -330,7 +330,7 @@ def _error_checks(on: bool):
 
 
 def _save_times(saveat, t0, t1):
-    check_saveat(saveat, t0, t1)
+    """Save times from ``saveat`` (already checked by the entry point's check_saveat)."""
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)):
@@ -664,13 +664,20 @@ def _truncate(traj, t_end, system=None, control=None):
     )
 
 
+def _guard_of(system, names, x):
+    """The guard that stopped a solve: the one closest to zero at its final state."""
+    if len(names) == 1:
+        return names[0]
+    g = system.guards(x)
+    return min(names, key=lambda n: abs(float(g[n])))
+
+
 def _eager_checks(traj, system, control, static, on_guard):
     result, t_final, leaves = jax.device_get((traj.result, traj.t_final, jtu.tree_leaves(traj.xs)))
     t_final = float(t_final)
     if result == diffrax.RESULTS.event_occurred:
         traj = _truncate(traj, t_final, system, control)
-        g = system.guards(traj.x_end)
-        name = min(static.guard_names, key=lambda n: abs(float(g[n])))
+        name = _guard_of(system, static.guard_names, traj.x_end)
         traj = dataclasses.replace(traj, guard=name)
         if on_guard == "raise":
             raise ChartSingularityError(
