@@ -134,6 +134,10 @@ class _Static:
     # for eager calls, whose inputs simulate() has checked, so that the program has no
     # host callback and JAX's persistent cache keeps it
     runtime_checks: bool = True
+    # the work rides as the last entry of a flat state vector (1-D Euclidean states):
+    # one array through the solver instead of a (state, work) pair, which costs about
+    # as much per step as the state itself on small systems
+    flat_work: bool = False
 
 
 def _is_traced(*trees) -> bool:
@@ -152,14 +156,30 @@ def _max_abs(a):
 def _vector_field(static: _Static):
     def vf(t, y, args):
         system, control = args
-        x = y[0] if static.track_work else y
+        x = _state_part(y, static)
         u = None if control is None else control(t, x)
         dx = system.vector_field(t, x, u)
+        if static.flat_work:
+            return jnp.concatenate([dx, jnp.reshape(system.power(t, x, u), (1,)).astype(dx.dtype)])
         if static.track_work:
             return dx, system.power(t, x, u)
         return dx
 
     return vf
+
+
+def _state_part(y, static: _Static):
+    """The system's state in the solver's state ``y`` (which may carry the work)."""
+    if static.flat_work:
+        return y[:-1]
+    return y[0] if static.track_work else y
+
+
+def _with_work(y, static: _Static):
+    """(state, work) from the solver's state (for saved values and the final state)."""
+    if static.flat_work:
+        return y[:-1], y[-1]
+    return y
 
 
 def _diagnostics(system, control, x0, t0, ts_saved, x_safe, valid, work, track):
@@ -220,20 +240,29 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
     guard event, what to save. Returns (problem, y0); y0 carries the work if tracked."""
     track = static.track_work
     spaces = system.spaces
-    y0 = (x0, jnp.zeros((), x0.dtype if hasattr(x0, "dtype") else float)) if track else x0
-    if track:
+    if static.flat_work:
+        y0 = jnp.concatenate([x0, jnp.zeros((1,), x0.dtype)])
+    elif track:
+        y0 = (x0, jnp.zeros((), x0.dtype if hasattr(x0, "dtype") else float))
         spaces = (spaces, Euclidean())
+    else:
+        y0 = x0
     term = LieODETerm(_vector_field(static), spaces)
     save_fn = None
     if static.project_steps:
 
         def project(t, y, args):
+            if static.flat_work:
+                return jnp.concatenate([args[0].project(t, y[:-1]), y[-1:]])
             if track:
                 return args[0].project(t, y[0]), y[1]
             return args[0].project(t, y)
 
         solver = ProjectedSolver(solver, project)
         save_fn = project  # dense output between steps is projected too
+    if static.flat_work:
+        inner = save_fn or _save_state
+        save_fn = lambda t, y, args: _with_work(inner(t, y, args), static)  # noqa: E731
     if static.ends_only:  # saveat=2: no interpolation inside the loop
         sub = diffrax.SubSaveAt(t0=True, t1=True, fn=save_fn or _save_state)
     else:
@@ -244,8 +273,7 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
         # One scalar event: the smallest guard. Which guard fired is read off the
         # final state afterwards (the one closest to zero).
         def cond(t, y, args, **kwargs):
-            x = y[0] if track else y
-            g = args[0].guards(x)
+            g = args[0].guards(_state_part(y, static))
             return jnp.min(jnp.stack([g[n] for n in static.guard_names]))
 
         event = diffrax.Event(
@@ -266,7 +294,7 @@ def _finish(system, control, x0, t0, sol, static: _Static):
     """The Trajectory of one solve from its raw output ``sol`` (``_Problem.run``'s dict)."""
     track = static.track_work
     ts_saved, ys, t_final = sol["ts"], sol["ys"], sol["t_final"]
-    x_end = sol["y_end"][0] if track else sol["y_end"]
+    x_end = _state_part(sol["y_end"], static)
     if track:
         xs, work = ys
     else:
@@ -405,6 +433,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         )
     if track_work is None:
         track_work = control is not None and _defines_power(system)
+    flat_work = bool(track_work) and euclid and isinstance(x0, (jax.Array, np.ndarray)) and jnp.ndim(x0) == 1
     if stepsize_controller is None:
         if isinstance(solver, diffrax.AbstractAdaptiveSolver):
             # Tolerances as arrays: changing them does not recompile. The work of the
@@ -412,7 +441,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
             # states) are those of the same solve without it.
             stepsize_controller = diffrax.PIDController(
                 rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts,
-                norm=_state_norm if track_work else optx.rms_norm,
+                norm=(_flat_state_norm if flat_work else _state_norm) if track_work else optx.rms_norm,
             )
         else:
             if dt0 is None:
@@ -442,6 +471,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         project_steps=bool(project_steps),
         ends_only=isinstance(saveat, (int, np.integer)) and int(saveat) == 2,
         diagnostics=bool(diagnostics),
+        flat_work=flat_work,
     )
     ts = _save_times(saveat, t0, t1)
     if dt0 is not None:
@@ -574,6 +604,11 @@ def simulate(
 def _state_norm(y):
     """RMS norm of the state part of (state, work): the error norm when work is tracked."""
     return optx.rms_norm(y[0])
+
+
+def _flat_state_norm(y):
+    """RMS norm of the state part of [state, work] (the flat layout)."""
+    return optx.rms_norm(y[:-1])
 
 
 def _is_explicit(solver):
