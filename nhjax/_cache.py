@@ -14,8 +14,8 @@ compile is kept (JAX's default of 1 s would skip most of a solve's programs), an
 the directory is capped at ``NHJAX_CACHE_MAX_BYTES`` (default 2 GiB; JAX evicts the
 least recently used entries). JAX keys each entry by the program, the compiler
 options and flags and the jax/jaxlib versions, so a stale entry is never used.
-What the cache cannot keep is tracing and lowering, which every new process does
-again.
+What this cache cannot keep is tracing and lowering, which every new process would
+do again: nhjax keeps its traced programs beside it (``_programs.py``).
 """
 
 from __future__ import annotations

@@ -60,6 +60,7 @@ from .._validate import (
     solver_settings,
     time_span,
 )
+from .. import _programs
 from ..errors import NhjaxError
 from .lockstep import _lanes_last, lockstep_solve, vmap_lanes
 from .simulate import (
@@ -69,9 +70,11 @@ from .simulate import (
     _defines_power,
     _drifting_constraints,
     _finish,
+    _from_plain,
     _guard_of,
     _reports_accuracy,
     _solve,
+    _to_plain,
 )
 
 __all__ = ["BatchError", "BatchTrajectory", "STATUSES", "simulate_batch", "stack"]
@@ -174,8 +177,7 @@ def _solve_chunk(system, x0, control, n, t0, t1, tol, project, options, axes):
     return eqx.filter_vmap(member, in_axes=axes)(system, x0, control), report, jnp.zeros((), bool)
 
 
-@eqx.filter_jit
-def _lockstep_chunk(system, x0, control, n, t0, t1, tol, project, options, axes, fast_trig=True, lanes=None):
+def _lockstep_chunk_impl(system, x0, control, n, t0, t1, tol, project, options, axes, fast_trig=True, lanes=None):
     """One chunk by the lock-step integrator (lockstep.py): the same steps per member as
     _solve_chunk, batch axis last inside, ``lanes`` members at a time; the first ``n``
     members are solved (the rest is padding), members whose initial state fails the
@@ -200,6 +202,29 @@ def _lockstep_chunk(system, x0, control, n, t0, t1, tol, project, options, axes,
         lambda s, x, c, so: _finish(s, c, x, t0, so, static), in_axes=axes + (0,)
     )(system, x0, control, sol)
     return traj, report, bad
+
+
+_lockstep_chunk = eqx.filter_jit(_lockstep_chunk_impl)
+
+
+def _lockstep_chunk_plain(*args):
+    """_lockstep_chunk with its Trajectory in builtin containers (for the program cache)."""
+    traj, report, bad = _lockstep_chunk_impl(*args)
+    return _to_plain(traj), report, bad
+
+
+def _cached_lockstep(args, state_names):
+    """The compiled lock-step chunk with its program from nhjax's program cache (a new
+    process does not trace it again); None when it cannot be cached."""
+    run = _programs.compiled("batch", _lockstep_chunk_plain, args, _COMPILER_OPTIONS)
+    if run is None:
+        return None
+
+    def solve(*a):
+        plain, report, bad = run(*a)
+        return _from_plain(plain, state_names), report, bad
+
+    return solve
 
 
 #: XLA options for the lock-step chunks (profiled per kernel with jax.profiler, cat,
@@ -526,6 +551,8 @@ def simulate_batch(
         all_args += (True, n_lanes) if lockstep else ()
         key = _compile_key(chunk_fn, all_args)
         solve = _COMPILED.get(key) if key is not None else None
+        if solve is None and lockstep:
+            solve = _cached_lockstep(all_args, tuple(ex_sys.state_names))
         if solve is None:
             solve = _compile(chunk_fn.lower(*all_args), _COMPILER_OPTIONS if lockstep else {})
             if key is not None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import functools
 import dataclasses
 from typing import Any
 
@@ -33,6 +34,7 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 
+from .. import _programs
 from .._validate import (
     check_control,
     check_saveat,
@@ -153,19 +155,28 @@ def _max_abs(a):
     return jnp.max(jnp.abs(a)) if a.size else jnp.zeros(())
 
 
-def _vector_field(static: _Static):
-    def vf(t, y, args):
-        system, control = args
-        x = _state_part(y, static)
-        u = None if control is None else control(t, x)
-        dx = system.vector_field(t, x, u)
-        if static.flat_work:
-            return jnp.concatenate([dx, jnp.reshape(system.power(t, x, u), (1,)).astype(dx.dtype)])
-        if static.track_work:
-            return dx, system.power(t, x, u)
-        return dx
+def _vf_body(static: _Static, t, y, args):
+    system, control = args
+    x = _state_part(y, static)
+    u = None if control is None else control(t, x)
+    dx = system.vector_field(t, x, u)
+    if static.flat_work:
+        return jnp.concatenate([dx, jnp.reshape(system.power(t, x, u), (1,)).astype(dx.dtype)])
+    if static.track_work:
+        return dx, system.power(t, x, u)
+    return dx
 
-    return vf
+
+@functools.lru_cache(maxsize=64)
+def _vector_field(static: _Static):
+    """The solver's vector field (state, and the power when the work is tracked).
+
+    It is a nested jit: a solve evaluates the vector field in ~26 places (RK stages,
+    the initial step, dense output, the event, each traced again by diffrax), and a
+    nested jit traces it once per argument shape and reuses that jaxpr everywhere, which
+    cuts the tracing of a solve (the time to a first simulate() that no compilation
+    cache can store). XLA inlines the call, so the compiled program is unchanged."""
+    return eqx.filter_jit(functools.partial(_vf_body, static))
 
 
 def _state_part(y, static: _Static):
@@ -211,16 +222,14 @@ def _diagnose(system, control, x0, t0, ts_saved, xs, t_final, work, track):
     return invariants, drift, {k: _max_abs(v) for k, v in cons.items()}, us
 
 
-_diagnose_jit = eqx.filter_jit(_diagnose)
-
-
 def _warm_diagnostics(system, control, x0, t0, ts, track):
     """Compile the eager path's diagnostics program (run on zeros of the right shapes),
     so that a first simulate() compiles it while _solve compiles."""
     n = ts.shape[0]
     xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
     work = jnp.zeros(n) if track else None
-    jax.block_until_ready(_diagnose_jit(system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track))
+    jax.block_until_ready(_programs.call("diagnose", _diagnose, (system, control, x0, t0, ts, xs, jnp.asarray(t0),
+                                                                 work, track)))
 
 
 _WARM_POOL = None
@@ -328,8 +337,7 @@ def _finish(system, control, x0, t0, sol, static: _Static):
 TRACES = collections.Counter()
 
 
-@eqx.filter_jit
-def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
+def _solve_impl(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
     TRACES["solve"] += 1
     problem, y0 = _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static, show)
     with _error_checks(static.runtime_checks):
@@ -338,6 +346,39 @@ def _solve(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, st
         else:
             sol, _ = problem.run(y0, (system, control), record=False, adjoint=adjoint)
     return _finish(system, control, x0, t0, sol, static)
+
+
+_solve = eqx.filter_jit(_solve_impl)
+
+#: Trajectory fields that the cached program returns (the static ones come from _Static).
+_DYNAMIC_FIELDS = ("ts", "xs", "us", "work", "invariants", "invariant_drift", "constraint_drift", "num_steps",
+                   "num_accepted_steps", "num_rejected_steps", "t_final", "x_end", "event_mask")
+
+
+def _to_plain(traj: Trajectory) -> dict:
+    """A Trajectory's arrays in builtin containers (what the program cache stores)."""
+    out = {k: getattr(traj, k) for k in _DYNAMIC_FIELDS}
+    out["result"] = traj.result._value
+    return out
+
+
+def _from_plain(out: dict, state_names, cls=None) -> Trajectory:
+    out = dict(out)
+    result = eqx.tree_at(lambda r: r._value, diffrax.RESULTS.successful, out.pop("result"))
+    return (cls or Trajectory)(**out, result=result, state_names=state_names)
+
+
+def _solve_plain(*args):
+    return _to_plain(_solve_impl(*args))
+
+
+def _solve_cached(*args):
+    """An eager solve through nhjax's program cache (``nhjax._programs``): a new process
+    whose program is on disk does not trace it again."""
+    static = args[10]
+    if static.progress:  # a host callback in the loop: jax.export cannot keep that program
+        return _solve(*args)
+    return _from_plain(_programs.call("simulate", _solve_plain, args), static.state_names)
 
 
 @contextlib.contextmanager
@@ -362,7 +403,9 @@ def _save_times(saveat, t0, t1):
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)):
-        return jnp.linspace(t0, t1, int(saveat))
+        if _is_traced(t0, t1):
+            return jnp.linspace(t0, t1, int(saveat))
+        return jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)))  # no program to compile
     ts = jnp.asarray(saveat, dtype=float)
     if not _is_traced(ts, t0, t1):
         tsn = np.asarray(ts)
@@ -398,7 +441,11 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
     named errors of ``nhjax.errors``; traced ones get the same words as runtime errors."""
     check_state(system, x0, owner="simulate")
     check_control(system, control, owner="simulate")
-    x0p, report = _member_report(system, control, x0, jnp.asarray(t0, float), project)
+    args = (system, control, x0, jnp.asarray(t0, float), project)
+    if _is_traced(args):
+        x0p, report = _member_report(*args)
+    else:  # through the program cache: a new process does not trace the checks again
+        x0p, report = _programs.call("report", member_report, args)
     guard_names, constrained = tuple(report["guards"]), _drifting_constraints(report["constraints"])
     if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
         x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
@@ -581,19 +628,23 @@ def simulate(
     show = np.asarray(bool(progress))
     if not traced:  # inputs checked above: diffrax's runtime checks stay out of the program
         static = dataclasses.replace(static, runtime_checks=False)
-    if traced or not static.diagnostics:
+    if traced:
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
+    elif not static.diagnostics:
+        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
+                             show)
     else:
         # Eager call: the diagnostics are a second program, compiled in a thread while
         # the solve compiles (XLA releases the GIL), then run on the solution.
         track = static.track_work
         warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
         core = dataclasses.replace(static, diagnostics=False)
-        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core, show)
+        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
+                             show)
         warm.result()
-        invariants, drift, cons, us = _diagnose_jit(
-            system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track)
+        invariants, drift, cons, us = _programs.call(
+            "diagnose", _diagnose, (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track))
         traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
                                    constraint_drift=cons, us=us)
     if traced:

@@ -1,0 +1,336 @@
+"""Traced programs kept on disk, so that a new process skips tracing too.
+
+JAX's persistent compilation cache (``_cache.py``) keeps compiled XLA programs, but
+every new process still traces and lowers a solve before it can look one up: for a
+first ``simulate()`` that is most of its time once the cache is warm. This module
+keeps the lowered program itself (``jax.export``, serialized StableHLO) under a key
+that fingerprints everything the tracing depended on:
+
+* the Python structure of the arguments, with the shapes and dtypes of their arrays
+  (values do not enter a trace: they are arguments of the program);
+* every static value in them (numbers, strings, the fields of equinox modules and
+  dataclasses), and the code of every function and class they hold. Classes and
+  functions of nhjax and of the libraries it builds on are identified by name,
+  since the versions of those libraries and the source of nhjax are in the key;
+  anything else (a user's Lagrangian, a control written in a notebook) by its
+  bytecode, its constants, its closure and the globals it refers to, recursively;
+* the versions of jax, jaxlib, diffrax, equinox, optimistix, lineax, numpy, the
+  hash of nhjax's own source files and the JAX settings that change a trace.
+
+Whatever the fingerprint cannot vouch for (an object it does not know how to read,
+a global that is neither data, module, function nor class) makes the call
+uncacheable: it is then traced as usual, so a stale program is never used. The
+program found on disk is called through ``jax.export`` (its compilation comes from
+JAX's persistent cache). Only calls made on concrete values use this path; under
+an outer ``jax.jit`` or ``jax.grad`` nothing changes.
+
+Files live in ``<compilation cache>/nhjax-programs`` (``NHJAX_CACHE_DIR``; ``=0``
+turns both caches off), capped at ``MAX_BYTES`` (oldest files go first).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import functools
+import hashlib
+import importlib.metadata
+import os
+import pickle
+import threading
+import types
+from pathlib import Path
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.tree_util as jtu
+import numpy as np
+
+FORMAT = 1
+MAX_BYTES = 256 * 2**20
+#: Modules whose classes and functions are identified by name (their code is covered
+#: by the versions and the source hash in the key).
+LIBRARIES = ("nhjax", "controls", "jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax",
+             "numpy", "builtins", "functools", "operator", "math", "typing", "abc", "lax")
+_PACKAGES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "numpy")
+
+#: Counters the tests read: programs loaded from disk, traced and stored, uncacheable calls.
+STATS = {"loaded": 0, "stored": 0, "uncacheable": 0}
+_MEMORY: dict[str, Callable] = {}
+_LOCK = threading.Lock()
+
+
+class Uncacheable(Exception):
+    """The fingerprint cannot vouch for an object: trace as usual."""
+
+
+def directory() -> Path | None:
+    """Where programs are kept (None: caching is off)."""
+    base = jax.config.jax_compilation_cache_dir
+    if not base or os.environ.get("NHJAX_PROGRAM_CACHE", "1").strip().lower() in ("0", "off", "false", "no"):
+        return None
+    return Path(base) / "nhjax-programs"
+
+
+@functools.lru_cache(maxsize=1)
+def _environment() -> str:
+    h = hashlib.sha256()
+    for pkg in _PACKAGES:
+        try:
+            h.update(f"{pkg}={importlib.metadata.version(pkg)};".encode())
+        except importlib.metadata.PackageNotFoundError:
+            h.update(f"{pkg}=?;".encode())
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    for name in ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
+                 "jax_numpy_rank_promotion", "jax_default_prng_impl"):
+        h.update(f"{name}={getattr(jax.config, name, None)};".encode())
+    h.update(str(jax.default_backend()).encode())
+    return h.hexdigest()
+
+
+def _is_library(module: str | None) -> bool:
+    return bool(module) and module.split(".")[0] in LIBRARIES
+
+
+def _code(code: types.CodeType, fp, seen) -> str:
+    consts = ",".join(_code(c, fp, seen) if isinstance(c, types.CodeType) else fp(c) for c in code.co_consts)
+    return f"code({code.co_code.hex()};{consts};{code.co_names};{code.co_varnames};{code.co_freevars})"
+
+
+class _Fingerprint:
+    """Walks objects into a string. Arrays that are leaves of the call's arguments
+    (``dynamic``: ids of the arrays the program takes as inputs) count by shape and
+    dtype; any other array (a global, a closure constant, a static field) is baked into
+    the trace, so its values count too."""
+
+    def __init__(self, dynamic=frozenset()):
+        self.seen: dict[int, str] = {}
+        self.dynamic = dynamic
+
+    def __call__(self, obj: Any) -> str:
+        if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
+            return f"{type(obj).__name__}:{obj!r}"
+        if isinstance(obj, (jax.Array, np.ndarray, np.generic)) or isinstance(obj, jax.ShapeDtypeStruct):
+            if isinstance(obj, jax.core.Tracer):
+                raise Uncacheable("traced value")
+            head = f"array({np.dtype(obj.dtype).str}{tuple(np.shape(obj))}"
+            if id(obj) in self.dynamic or isinstance(obj, jax.ShapeDtypeStruct):
+                return head + ")"
+            return head + ":" + hashlib.sha256(np.ascontiguousarray(np.asarray(obj)).tobytes()).hexdigest() + ")"
+        key = id(obj)
+        if key in self.seen:  # cycles, shared objects
+            return self.seen[key]
+        self.seen[key] = f"ref{len(self.seen)}"
+        out = self._compound(obj)
+        self.seen[key] = out
+        return out
+
+    def _compound(self, obj):
+        if isinstance(obj, (tuple, list)):
+            return f"{type(obj).__name__}(" + ",".join(map(self, obj)) + ")"
+        if isinstance(obj, dict):
+            return "dict(" + ",".join(f"{self(k)}:{self(v)}" for k, v in sorted(obj.items(), key=lambda kv: repr(kv[0]))) + ")"
+        if isinstance(obj, (frozenset, set)):
+            return "set(" + ",".join(sorted(map(self, obj))) + ")"
+        if isinstance(obj, type):
+            return self._class(obj)
+        if isinstance(obj, types.ModuleType):
+            return f"module:{obj.__name__}"
+        if isinstance(obj, np.dtype):
+            return f"dtype:{obj.str}"
+        if isinstance(obj, enum.Enum):
+            return f"enum:{self._class(type(obj))}.{obj.name}"
+        if isinstance(obj, (staticmethod, classmethod)):
+            return f"{type(obj).__name__}({self(obj.__func__)})"
+        if isinstance(obj, property):
+            return f"property({self(obj.fget)};{self(obj.fset)})"
+        if isinstance(obj, functools.partial):
+            return f"partial({self(obj.func)};{self(obj.args)};{self(obj.keywords)})"
+        if isinstance(obj, types.MethodType):
+            return f"method({self(obj.__func__)};{self(obj.__self__)})"
+        if isinstance(obj, (types.FunctionType, types.BuiltinFunctionType)):
+            return self._function(obj)
+        wrapped = getattr(obj, "__wrapped__", None) or getattr(obj, "method", None)
+        if callable(obj) and callable(wrapped) and not isinstance(obj, eqx.Module):
+            # jax.jit-ed functions, equinox's method wrappers: what they wrap
+            return f"wrapper:{type(obj).__qualname__}({self(wrapped)})"
+        if isinstance(obj, jtu.PyTreeDef):
+            return f"treedef:{obj}"
+        if isinstance(obj, eqx.Module) or dataclasses.is_dataclass(obj):
+            fields = ",".join(f"{f.name}={self(getattr(obj, f.name, None))}" for f in dataclasses.fields(obj))
+            return f"{self._class(type(obj))}({fields})"
+        if _is_library(type(obj).__module__) and hasattr(obj, "__dict__"):
+            # a library object that is not a dataclass: its class and state
+            return f"{self._class(type(obj))}{self(vars(obj))}"
+        raise Uncacheable(f"cannot fingerprint {type(obj).__qualname__}")
+
+    def _class(self, cls) -> str:
+        name = f"{cls.__module__}.{cls.__qualname__}"
+        if _is_library(cls.__module__):
+            return f"class:{name}"
+        # a user's class: its own methods and attributes, and its bases
+        body = {k: v for k, v in vars(cls).items()
+                if (not k.startswith("__") or k in ("__call__", "__init__")) and k != "_abc_impl"}
+        bases = ",".join(self._class(b) for b in cls.__bases__)
+        return f"class:{name}[{bases}]{self(body)}"
+
+    def _function(self, fn) -> str:
+        module = getattr(fn, "__module__", None)
+        name = f"{module}.{getattr(fn, '__qualname__', getattr(fn, '__name__', '?'))}"
+        if _is_library(module) and "<lambda>" not in name and "<locals>" not in name:
+            return f"fn:{name}"
+        code = getattr(fn, "__code__", None)
+        if code is None:
+            raise Uncacheable(f"cannot read the code of {name}")
+        parts = [f"fn:{name}", _code(code, self, self.seen)]
+        globs = getattr(fn, "__globals__", {})
+        for g in _global_names(code):
+            if g in globs:
+                parts.append(f"{g}={self(globs[g])}")
+        if fn.__closure__:
+            parts.append("closure(" + ",".join(self(c.cell_contents) for c in fn.__closure__) + ")")
+        parts.append(self(fn.__defaults__))
+        parts.append(self(fn.__kwdefaults__))
+        return "|".join(parts)
+
+
+def _global_names(code: types.CodeType):
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= set(_global_names(c))
+    return sorted(names)
+
+
+def fingerprint(*objs) -> str:
+    """The cache key of a call on ``objs`` (raises Uncacheable when it cannot be made)."""
+    h = hashlib.sha256()
+    h.update(f"format={FORMAT};env={_environment()};".encode())
+    dynamic = frozenset(id(x) for x in jtu.tree_leaves(objs) if eqx.is_array(x))
+    h.update(_Fingerprint(dynamic)(objs).encode())
+    return h.hexdigest()
+
+
+def _store(path: Path, data: bytes):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".tmp{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+    files = sorted(path.parent.glob("*.prog"), key=lambda p: p.stat().st_mtime)
+    total = sum(p.stat().st_size for p in files)
+    while files and total > MAX_BYTES:
+        oldest = files.pop(0)
+        total -= oldest.stat().st_size
+        oldest.unlink(missing_ok=True)
+
+
+def _program(name: str, fn: Callable, args: tuple):
+    """(caller, exported, output treedef) of ``fn`` on ``args``'s structure, from memory,
+    disk or a new export; None when it cannot be cached."""
+    folder = directory()
+    try:
+        if folder is None:
+            raise Uncacheable("off")
+        key = f"{name}-{fingerprint(name, fn, args)}"
+    except Uncacheable:
+        STATS["uncacheable"] += 1
+        return None
+    with _LOCK:
+        program = _MEMORY.get(key)
+    if program is None:
+        dyn, static = eqx.partition(args, eqx.is_array)
+        leaves, dyn_def = jtu.tree_flatten(dyn)
+        path = folder / f"{key}.prog"
+        program = _load(path)
+        if program is None:
+            program = _export(fn, static, dyn_def, leaves, path)
+        with _LOCK:
+            _MEMORY[key] = program
+    return None if program is _FAILED else program
+
+
+def _inputs(args):
+    return jtu.tree_leaves(eqx.filter(args, eqx.is_array))
+
+
+def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None = None):
+    """Ahead-of-time: a callable equivalent to ``eqx.filter_jit(fn)`` on arguments of
+    ``args``'s structure, compiled with ``compiler_options`` (options this XLA does not
+    know are dropped), its program from the program cache; None when it cannot be
+    cached (then compile as usual)."""
+    program = _program(name, fn, args)
+    if program is None:
+        return None
+    _, exported, out_def = program
+    specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in _inputs(args)]
+    lowered = jax.jit(exported.call).lower(*specs)
+    options = dict(compiler_options or {})
+    while True:
+        try:
+            exe = lowered.compile(compiler_options=options)
+            break
+        except Exception:  # noqa: BLE001 - an option this XLA does not have
+            if not options:
+                raise
+            options.pop(next(reversed(options)))
+
+    def run(*a):
+        return jtu.tree_unflatten(out_def, exe(*_inputs(a)))
+
+    return run
+
+
+def call(name: str, fn: Callable, args: tuple):
+    """``fn(*args)`` (a jax-traceable function returning a pytree of arrays in builtin
+    containers), with its traced program taken from / kept in the program cache.
+
+    Equivalent to ``eqx.filter_jit(fn)(*args)``; falls back to it when caching is off
+    or the arguments cannot be fingerprinted."""
+    program = _program(name, fn, args)
+    if program is None:
+        return eqx.filter_jit(fn)(*args)
+    caller, _, out_def = program
+    return jtu.tree_unflatten(out_def, caller(*_inputs(args)))
+
+
+_FAILED = object()  # export refused this function (e.g. a host callback): trace as usual
+
+
+def _load(path: Path):
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        head, body = pickle.loads(blob)
+        exported = jax.export.deserialize(bytearray(body))
+    except Exception:  # a damaged or foreign file: trace again (and overwrite it)
+        return None
+    STATS["loaded"] += 1
+    return jax.jit(exported.call), exported, head
+
+
+def _export(fn, static, dyn_def, leaves, path: Path):
+    box = {}
+
+    def flat(*lv):
+        out = fn(*eqx.combine(jtu.tree_unflatten(dyn_def, lv), static))
+        out_leaves, box["out_def"] = jtu.tree_flatten(out)
+        return out_leaves
+
+    specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
+    try:
+        exported = jax.export.export(jax.jit(flat))(*specs)
+    except Exception:  # noqa: BLE001 - the plain path re-raises a user's own error
+        STATS["uncacheable"] += 1
+        return _FAILED
+    try:
+        _store(path, pickle.dumps((box["out_def"], bytes(exported.serialize()))))
+        STATS["stored"] += 1
+    except (OSError, pickle.PicklingError, TypeError, ImportError):
+        pass  # read-only cache, an output structure that does not pickle: keep it in memory
+    return jax.jit(exported.call), exported, box["out_def"]

@@ -1,0 +1,137 @@
+"""nhjax's program cache (nhjax/_programs.py): traced programs kept on disk under a
+fingerprint of everything the trace depended on. What could go wrong is a stale
+program: these tests change what a trace depends on (a user's code, a global it
+reads, a static number, an array baked into the trace) and check that the key moves,
+and that what the key ignores (values of the program's inputs) gives the same
+results as tracing afresh."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import nhjax
+from nhjax import _programs
+from nhjax.scenes import FallingCat
+
+
+def _user_function(source: str, name: str, **globals_):
+    namespace = {"jnp": jnp, **globals_}
+    exec(textwrap.dedent(source), namespace)  # a function as a notebook cell defines it
+    return namespace[name]
+
+
+def test_key_moves_with_code_globals_and_baked_values_not_with_inputs():
+    x = jnp.ones(3)
+    f = _user_function("def f(x):\n    return x * 2.0\n", "f")
+    same = _user_function("def f(x):\n    return x * 2.0\n", "f")
+    edited = _user_function("def f(x):\n    return x * 3.0\n", "f")
+    key = _programs.fingerprint(f, (x,))
+    assert _programs.fingerprint(same, (x,)) == key  # same code, another object: same program
+    assert _programs.fingerprint(edited, (x,)) != key  # the edited cell
+    assert _programs.fingerprint(f, (2 * x,)) == key  # input values are not in the trace
+    assert _programs.fingerprint(f, (jnp.ones(4),)) != key  # shapes are
+
+    g1 = _user_function("def g(x):\n    return x * SCALE\n", "g", SCALE=2.0)
+    g2 = _user_function("def g(x):\n    return x * SCALE\n", "g", SCALE=2.5)
+    assert _programs.fingerprint(g1, (x,)) != _programs.fingerprint(g2, (x,))  # a global it reads
+
+    h1 = _user_function("def h(x):\n    return M @ x\n", "h", M=np.eye(3))
+    h2 = _user_function("def h(x):\n    return M @ x\n", "h", M=2 * np.eye(3))
+    assert _programs.fingerprint(h1, (x,)) != _programs.fingerprint(h2, (x,))  # an array baked in
+
+    helper1 = _user_function("def helper(x):\n    return x + 1.0\n", "helper")
+    helper2 = _user_function("def helper(x):\n    return x - 1.0\n", "helper")
+    k1 = _user_function("def k(x):\n    return helper(x)\n", "k", helper=helper1)
+    k2 = _user_function("def k(x):\n    return helper(x)\n", "k", helper=helper2)
+    assert _programs.fingerprint(k1, (x,)) != _programs.fingerprint(k2, (x,))  # a function it calls
+
+    # a module's parameters as arrays are inputs; its Python numbers are static (baked in)
+    assert _programs.fingerprint(FallingCat(lam=0.4)) == _programs.fingerprint(FallingCat(lam=0.5))
+    assert _programs.fingerprint(FallingCat(chart_eps=1e-3)) != _programs.fingerprint(FallingCat(chart_eps=2e-3))
+    # arrays as module fields are inputs of the program
+    s1 = nhjax.Sinusoids(jnp.zeros(2), jnp.ones(2), jnp.ones(2), jnp.zeros(2))
+    s2 = nhjax.Sinusoids(jnp.zeros(2), 2 * jnp.ones(2), jnp.ones(2), jnp.zeros(2))
+    assert _programs.fingerprint(s1) == _programs.fingerprint(s2)
+
+
+def test_objects_it_cannot_read_are_traced_as_usual():
+    class Opaque:  # no dataclass, no module of a library: the fingerprint cannot vouch for it
+        def __init__(self):
+            self.scale = 2.0
+
+    obj = Opaque()
+    fn = _user_function("def f(x):\n    return x * OBJ.scale\n", "f", OBJ=obj)
+    with pytest.raises(_programs.Uncacheable):
+        _programs.fingerprint(fn, (jnp.ones(2),))
+    before = _programs.STATS["uncacheable"]
+    out = _programs.call("test-opaque", fn, (jnp.ones(2),))
+    assert _programs.STATS["uncacheable"] == before + 1
+    np.testing.assert_array_equal(out, 2.0 * np.ones(2))
+
+
+def test_cached_call_equals_plain_jit(tmp_path, monkeypatch):
+    """A program exported, stored, loaded back and called gives bit-identical results
+    to eqx.filter_jit on the same function, for new input values too."""
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    fn = _user_function(
+        "def f(p, x):\n    return {'y': jnp.sin(p.amplitude) * x, 'n': jnp.sum(x ** 2)}\n", "f")
+    p = nhjax.Sinusoids(jnp.zeros(2), jnp.array([0.3, 0.2]), jnp.ones(2), jnp.zeros(2))
+    x = jnp.array([1.0, -2.0])
+    stored = _programs.STATS["stored"]
+    out = _programs.call("test-roundtrip", fn, (p, x))
+    assert _programs.STATS["stored"] == stored + 1 and len(list(tmp_path.glob("*.prog"))) == 1
+    monkeypatch.setattr(_programs, "_MEMORY", {})  # as a new process: only the disk remains
+    loaded = _programs.STATS["loaded"]
+    x2 = jnp.array([0.5, 4.0])
+    again = _programs.call("test-roundtrip", fn, (p, x2))
+    assert _programs.STATS["loaded"] == loaded + 1
+    ref = eqx.filter_jit(fn)(p, x2)
+    np.testing.assert_array_equal(again["y"], ref["y"])
+    np.testing.assert_array_equal(again["n"], ref["n"])
+    np.testing.assert_array_equal(out["y"], eqx.filter_jit(fn)(p, x)["y"])
+
+
+_CHILD = """
+import json, sys, importlib
+import numpy as np, jax, nhjax
+from nhjax import _programs
+from nhjax.scenes import FallingCat
+sim = importlib.import_module("nhjax.integrate.simulate")
+cat = FallingCat(lam=0.4)
+ctrl = nhjax.Sinusoids([0.0, 0.0], [0.3, 0.2], [2.0, 3.0], [0.0, np.pi / 2])
+tr = nhjax.simulate(cat, cat.initial_state(0.9, chi_dot=0.3), 3.0, control=ctrl)
+X = np.stack([np.asarray(cat.initial_state(th, chi_dot=0.3)) for th in np.linspace(0.7, 1.1, 6)])
+bt = nhjax.simulate_batch(cat, X, 3.0, control=ctrl, saveat=2)
+batch = importlib.import_module("nhjax.integrate.batch")
+print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), drift={k: float(v) for k, v in tr.invariant_drift.items()},
+                      batch=np.asarray(bt.x_final).tolist(), steps=np.asarray(bt.num_accepted_steps).tolist(),
+                      traces=sim.TRACES["solve"], batch_traces=batch.TRACES["lockstep"], stats=_programs.STATS)))
+"""
+
+
+def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
+    """Two fresh processes share a cache directory: the second traces no solve and no
+    batch chunk, loads their programs, and returns the first one's trajectory,
+    diagnostics and batch members bit for bit."""
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    assert first["traces"] == 1 and first["batch_traces"] == 1
+    assert first["stats"]["stored"] >= 4  # report, solve, diagnostics, batch chunk
+    assert second["traces"] == 0 and second["batch_traces"] == 0
+    assert second["stats"]["loaded"] >= 4 and second["stats"]["stored"] == 0
+    assert second["xs"] == first["xs"] and second["drift"] == first["drift"]
+    assert second["batch"] == first["batch"] and second["steps"] == first["steps"]
+    assert len(set(first["steps"])) > 1  # members of different lengths
