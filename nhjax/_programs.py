@@ -232,12 +232,20 @@ def _program(name: str, fn: Callable, args: tuple):
     """(caller, exported, output treedef) of ``fn`` on ``args``'s structure, from memory,
     disk or a new export; None when it cannot be cached."""
     folder = directory()
+    if folder is None or jax.config.jax_disable_jit:
+        return None
+    quick = _quick_key(name, fn, args)
+    with _LOCK:
+        program = _MEMORY.get(quick) if quick is not None else None
+    if program is not None:
+        return None if program is _FAILED else program
     try:
-        if folder is None:
-            raise Uncacheable("off")
         key = f"{name}-{fingerprint(name, fn, args)}"
     except Uncacheable:
         STATS["uncacheable"] += 1
+        if quick is not None:
+            with _LOCK:
+                _MEMORY[quick] = _FAILED  # not again in this process
         return None
     with _LOCK:
         program = _MEMORY.get(key)
@@ -248,9 +256,25 @@ def _program(name: str, fn: Callable, args: tuple):
         program = _load(path)
         if program is None:
             program = _export(fn, static, dyn_def, leaves, path)
-        with _LOCK:
-            _MEMORY[key] = program
+    with _LOCK:
+        _MEMORY[key] = program
+        if quick is not None:
+            _MEMORY[quick] = program
     return None if program is _FAILED else program
+
+
+def _quick_key(name, fn, args):
+    """The in-process key, as jax.jit's own cache has it: structure, shapes and dtypes,
+    and the static values by hash (a global changed later in the same process is not
+    seen, exactly as by jax.jit). None if a static value is unhashable."""
+    leaves, treedef = jtu.tree_flatten(args)
+    desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
+    key = ("quick", name, fn, treedef, desc)
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
 
 
 def _inputs(args):
