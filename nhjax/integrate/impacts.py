@@ -59,11 +59,15 @@ Rules (documented behaviour)
 
 Gradients
 ---------
-The loop is a ``lax.while_loop``: forward mode (``jax.jvp``, ``jax.jacfwd``)
-goes through it, reverse mode (``jax.grad``) does not (JAX has no reverse rule
-for while loops). Differentiate with forward mode: the number of tangents is the
-number of differentiated inputs (initial data, amplitude, frequency,
-restitution: a handful), and forward mode vmaps. The impact-time dependence
+By default the loop is a ``lax.while_loop``: forward mode (``jax.jvp``,
+``jax.jacfwd``) goes through it, reverse mode does not (JAX has no reverse rule
+for while loops). With ``adjoint="reverse"`` it is an
+``equinox.internal.while_loop(kind="checkpointed", max_steps=max_steps)`` (as
+diffrax's RecursiveCheckpointAdjoint: recursive checkpointing, the forward loop
+recomputed piecewise in the backward pass) and the solver's stage loop a bounded
+one, so ``jax.grad`` / ``jax.vjp`` go through the impacts (and forward mode does
+not). Forward mode suits a handful of differentiated inputs, reverse mode a
+scalar loss of many. The impact-time dependence
 (the saltation correction) is in the derivative: the root tau* carries the
 implicit derivative dtau* = -dG/G' (one Newton step whose value is exactly
 zero), the event state y(tau*) + f dtau*, and every later step starts from it.
@@ -724,6 +728,7 @@ def simulate_impacts(
     release_tol: float = 1e-10,
     event_samples: int = 4,
     constraint_tol: float = 1e-8,
+    adjoint: str = "forward",
 ) -> ImpactTrajectory:
     """Integrate a system with one-sided constraints psi(t, q) >= 0 through its impacts.
 
@@ -754,6 +759,9 @@ def simulate_impacts(
     event_samples : dense-output samples per step at which events are looked for.
     constraint_tol : largest violation of psi >= 0 and of the permanent constraints
         accepted in x0.
+    adjoint : "forward" (default: jax.jvp / jax.jacfwd differentiate the solve) or
+        "reverse" (jax.grad / jax.vjp: the event loop is a checkpointed while loop of at
+        most max_steps iterations, as diffrax's RecursiveCheckpointAdjoint). Same values.
 
     Returns an ``ImpactTrajectory``. Jit, vmap and forward-mode differentiation go
     through (then failures become ``equinox.error_if`` runtime errors); for batches
@@ -761,6 +769,7 @@ def simulate_impacts(
     """
     owner = "simulate_impacts"
     choice("on_max_impacts", on_max_impacts, ("raise", "stop"), owner=owner)
+    choice("adjoint", adjoint, ("forward", "reverse"), owner=owner)
     for name, v in (("max_impacts", max_impacts), ("max_steps", max_steps), ("event_samples", event_samples)):
         integer(name, v, minimum=1, owner=owner)
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, constraint_tol=constraint_tol, owner=owner)
@@ -811,7 +820,7 @@ def simulate_impacts(
         system, x0, arr(t1), t0=arr(t0), ts=ts, solver=solver, rtol=arr(rtol), atol=arr(atol),
         dt0=arr(dt0), dtmax=arr(dtmax), max_steps=int(max_steps), max_impacts=int(max_impacts),
         rest_velocity=arr(rest_velocity), graze_tol=arr(graze_tol), release_tol=arr(release_tol),
-        event_samples=int(event_samples),
+        event_samples=int(event_samples), adjoint=adjoint,
     )
     fatal = (2, 3, 4) if on_max_impacts == "stop" else (1, 2, 3, 4)
     if not _concrete(traj.status):
