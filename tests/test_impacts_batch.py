@@ -69,3 +69,15 @@ def test_batch_sizes_must_agree():
         nhjax.simulate_impacts_batch(balls, x0[:3], T1, in_axes={"system": ["A"], "x0": 0})
     with pytest.raises(ValueError, match="lanes"):
         nhjax.simulate_impacts_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=0)
+
+
+def test_simulate_batch_signature_names_what_impacts_do_not_support():
+    from nhjax.integrate.impacts import simulate_batch_impacts
+
+    ball, balls, gam, x0 = _members()
+    with pytest.raises(ValueError, match="control"):
+        simulate_batch_impacts(ball, x0, T1, control=lambda t, x: 0.0)
+    with pytest.raises(ValueError, match="project"):
+        simulate_batch_impacts(ball, x0, T1, project=True)
+    with pytest.raises(ValueError, match="in_axes keys"):
+        simulate_batch_impacts(ball, x0, T1, in_axes={"control": 0})

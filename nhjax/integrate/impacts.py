@@ -102,7 +102,8 @@ from ..mechanics.impacts import (
     restitution_of,
 )
 
-__all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "simulate_impacts_batch", "solve_impacts"]
+__all__ = ["ImpactTrajectory", "STATUS", "simulate_batch_impacts", "simulate_impacts", "simulate_impacts_batch",
+           "solve_impacts"]
 
 STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
 # loop iterations without progress in time after which the solve is declared stalled
@@ -980,7 +981,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
     to vary only the amplitude, or a pytree of axes.
     Default: x0 batched if it is 2-D, the system shared. ``chunk_size``: most members per
-    compiled chunk (default: the batch split evenly over the workers). ``lanes``: members
+    compiled chunk (the batch is split into at least one chunk per worker). ``lanes``: members
     stepped together per chunk. ``saveat``: 0 (nothing saved, default) or an int / 1-D
     array of save times as in ``simulate_impacts``; other keyword arguments are
     ``solve_impacts``'s. No exceptions: every member's ``status`` says how it ended.
@@ -1042,7 +1043,9 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     if x_axis not in (0, None):
         raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis}", "in_axes", in_axes)
     workers = int(workers or os.cpu_count() or 1)
-    chunk = -(-B // workers) if chunk_size is None else chunk_size
+    chunk = -(-B // workers)  # at least one chunk per worker
+    if chunk_size is not None:
+        chunk = min(chunk, chunk_size)
     chunk = int(max(1, min(chunk, B)))
     starts = list(range(0, B, chunk))
     t1a = jnp.asarray(t1, float)
@@ -1069,3 +1072,42 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     merged = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)]),
                                     *[eqx.partition(o, eqx.is_array)[0] for o in outs])
     return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)
+
+
+def simulate_batch_impacts(system, x0, t1, *, t0=0.0, control=None, in_axes=None, chunk_size: int = 8192,
+                           lanes=None, workers=None, progress=None, saveat=2, solver=None, rtol: float = 1e-8,
+                           atol: float = 1e-8, dt0=None, max_steps=None, stepsize_controller=None, jump_ts=None,
+                           adjoint=None, project: bool = False, project_steps=None, constraint_tol: float = 1e-8,
+                           on_guard: str = "raise", on_error: str = "raise", track_work=None,
+                           diagnostics: bool = True, **impact_options) -> ImpactTrajectory:
+    """``simulate_batch``'s signature for systems with one-sided constraints (those that
+    define ``unilateral_constraints``): the lock-step impact batch
+    (``simulate_impacts_batch``). ``in_axes`` takes ``simulate_batch``'s {"system": 0 /
+    None, "x0": 0 / None}; ``saveat``, ``rtol``, ``atol``, ``dt0``, ``solver``,
+    ``max_steps``, ``chunk_size``, ``lanes``, ``workers`` mean what they mean there;
+    further keyword arguments (``max_impacts``, ``rest_velocity``, ...) are
+    ``solve_impacts``'s. Returns an ``ImpactTrajectory`` with a leading member axis (its
+    ``status`` per member; nothing raises for a failed member). Arguments without a meaning
+    for impacts (controls, adjoints, jump times, projection, a custom step-size controller)
+    raise a ValueError naming them."""
+    owner = "simulate_batch (a system with one-sided constraints)"
+    unsupported = dict(control=control, stepsize_controller=stepsize_controller, jump_ts=jump_ts,
+                       adjoint=adjoint, project_steps=project_steps)
+    for name, v in unsupported.items():
+        if v is not None:
+            raise ValueError(f"{owner}: {name}={v!r} is not supported for impact systems; leave it None "
+                             "(or call nhjax.simulate_impacts_batch directly)")
+    if project:
+        raise ValueError(f"{owner}: project=True is not supported for impact systems; persistent contacts "
+                         "are projected by the event loop itself")
+    choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
+    choice("on_error", on_error, ("raise", "return"), owner=owner)
+    axes = {"x0": 0} if in_axes is None else dict(in_axes)
+    unknown = set(axes) - {"system", "x0"}
+    if unknown:
+        raise ValueError(f"{owner}: in_axes keys must be among 'system', 'x0'; got {sorted(unknown)}")
+    opts = dict(impact_options, t0=t0, rtol=rtol, atol=atol, dt0=dt0, solver=solver)
+    if max_steps is not None:
+        opts["max_steps"] = int(max_steps)
+    return simulate_impacts_batch(system, x0, t1, in_axes=axes, chunk_size=chunk_size,
+                                  lanes=16 if lanes is None else lanes, workers=workers, saveat=saveat, **opts)
