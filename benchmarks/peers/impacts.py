@@ -147,7 +147,7 @@ def bounce(y0, t0, t1, p, n_max, rtol, atol, dtmax, h0, samples=4, graze_tol=1e-
             continue
         # Newton on genuine DP5 steps from t, safeguarded by bisection on [lo, hi]
         tau = hi
-        for it in range(60):
+        for _ in range(60):
             _step(t, y, f0, tau - t, p, K, y1, err)
             G = _gap(tau, y1[0], p)
             Gp = _gap_rate(tau, y1[1], p)
@@ -162,7 +162,7 @@ def bounce(y0, t0, t1, p, n_max, rtol, atol, dtmax, h0, samples=4, graze_tol=1e-
             if not (np.isfinite(tn) and lo <= tn <= hi):
                 tn = 0.5 * (lo + hi)
             tau = tn
-        g_, A, w, al = p[0], p[1], p[2], p[3]
+        A, w, al = p[1], p[2], p[3]
         v0 = y1[1]
         v1 = (1 + al) * A * w * np.cos(w * tau) - al * v0
         times[k] = tau

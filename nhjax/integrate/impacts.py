@@ -220,12 +220,20 @@ def _ulp(t):
 def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10, dt0=None, dtmax=None,
              max_steps: int = 100_000, max_impacts: int = 1000, rest_velocity=1e-6, graze_tol=1e-12,
              release_tol=1e-10, event_samples: int = 4, locate_iterations: int = 60, reverse: bool = False):
-    """The event loop of one member as pieces: ``(init, body, cond, finish)`` with
-    ``init(x0) -> carry``, ``body(carry) -> carry`` (one loop iteration: a step or a
-    root-finding step), ``cond(carry)`` (not finished) and ``finish(carry, x0) ->
-    ImpactTrajectory``. ``solve_impacts`` runs them in one while loop; the lock-step batch
-    (``simulate_impacts_batch``) runs ``body`` on many lanes at once and refills finished
-    lanes with new members."""
+    """The event loop of one member as pieces, a dict of functions:
+
+    * ``init(x0) -> carry`` (the member's start: contact modes, controller, solver state);
+    * ``body(carry) -> carry``: one loop iteration (a step or a root-finding step); an
+      impact's record row is left in ``carry["rec"]`` at index ``carry["rec_row"]``
+      (N: none) instead of being written into an N-row record inside the iteration;
+    * ``cond(carry)``: not finished; ``records0()``: the empty N-row impact record;
+      ``record(records, carry)``: writes the iteration's row;
+    * ``finish_fields(carry, x0)``: the trajectory's other fields;
+      ``finish(fields, records) -> ImpactTrajectory``.
+
+    ``solve_impacts`` runs them in one while loop (``reverse``: a checkpointed one); the
+    lock-step batch (``_lockstep_chunk``) runs ``body`` on many lanes at once, writes the
+    rows straight into each member's slot and refills finished lanes with new members."""
     solver = diffrax.Dopri5() if solver is None else solver
     if getattr(solver, "scan_kind", "") is None:
         # diffrax's default stage loop is a checkpointed while loop, which has no
