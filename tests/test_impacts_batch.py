@@ -29,8 +29,8 @@ def _members():
 
 def test_each_lockstep_member_is_its_own_solve():
     ball, balls, gam, x0 = _members()
-    # 2 lanes for 7 members: the lanes are refilled from the queue many times
-    tr = nhjax.simulate_impacts_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=1,
+    # 2 chunks (members dealt in turn), 2 lanes each: the lanes are refilled from the queue
+    tr = nhjax.simulate_impacts_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=2,
                                       saveat=5, **OPTS)
     n = np.asarray(tr.num_impacts)
     steps = np.asarray(tr.num_steps)

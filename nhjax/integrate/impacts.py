@@ -1058,10 +1058,16 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     starts = list(range(0, B, chunk))
     t1a = jnp.asarray(t1, float)
 
+    # Members are dealt to the chunks in turn (chunk j: members j, j + W, ...): a sweep over a
+    # sorted parameter has its slow members (chattering, many impacts) side by side, and
+    # contiguous chunks would give one worker most of them.
+    W = len(starts)
+    perm = np.concatenate([np.arange(j, B, W) for j in range(W)])
+
     def members(lo):
-        """Chunk members lo .. lo+chunk-1 (host-side numpy; a short last chunk is padded with
-        copies of its last member, which are not solved)."""
-        idx = np.minimum(np.arange(lo, lo + chunk), B - 1)
+        """Chunk members perm[lo .. lo+chunk-1] (host-side numpy; a short last chunk is padded
+        with copies of its last member, which are not solved)."""
+        idx = perm[np.minimum(np.arange(lo, lo + chunk), B - 1)]
         s = jax.tree_util.tree_map(lambda a, ax: a if ax is None else np.asarray(a)[idx], system, sys_axes,
                                    is_leaf=lambda a: a is None)
         x = x0 if x_axis is None else np.asarray(x0)[idx]
@@ -1077,8 +1083,10 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     outs = [first] + rest
     sizes_ = [min(chunk, B - lo) for lo in starts]
     _, static = eqx.partition(outs[0], eqx.is_array)
-    merged = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)]),
-                                    *[eqx.partition(o, eqx.is_array)[0] for o in outs])
+    inv = np.argsort(perm)
+    merged = jax.tree_util.tree_map(
+        lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)])[inv],
+        *[eqx.partition(o, eqx.is_array)[0] for o in outs])
     return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)
 
 
