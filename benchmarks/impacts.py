@@ -10,6 +10,9 @@ Cases
   "local" errors: each impact time against the root of the exact parabola from the
   solver's own previous post-impact state (NumPy bisection, BouncingBall.reference_impacts),
   since chaos amplifies any difference between two runs.
+* numba: benchmarks/peers/impacts.py, a compiled event loop with the same method (Dormand-
+  Prince 5(4), Newton on genuine steps for the impact time, the seed's jump), same rtol/atol
+  and largest step.
 * scipy: solve_ivp (DOP853 and RK45) with a terminal event psi = 0 (direction -1), the jump
   applied in a Python loop between segments (what a user would write), same rtol/atol.
 
@@ -37,6 +40,9 @@ from nhjax.scenes import BouncingBall, RollingSphereWall
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from _timing import median_time  # noqa: E402
+
+sys.path.insert(0, str(HERE / "peers"))
+from impacts import bounce as numba_bounce  # noqa: E402  (benchmarks/peers/impacts.py)
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
 G = 9.81
@@ -111,6 +117,17 @@ def main():
     rows.append(dict(case="floor", method="nhjax simulate_impacts (Dopri5)", impacts=n, impact_time_error=err_t,
                      velocity_error=err_v, energy_error=float(tr.energy_error), seconds=t_nh,
                      compile_seconds=compile_floor))
+    # the Numba event loop (same DP5 + Newton on genuine steps), largest step as nhjax's
+    pf = np.array([G, 0.0, float(floor.omega), 1.0])
+    nb = lambda: numba_bounce(np.array([h, 0.0]), 0.0, t1, pf, N_IMP, TOL, TOL, np.inf, 1e-3)  # noqa: E731
+    t = time.perf_counter()
+    nb()
+    compile_nb = time.perf_counter() - t
+    times, vpre, _, k_nb, _, _ = nb()
+    rows.append(dict(case="floor", method="numba DP5 event loop (peers/impacts.py)", impacts=int(k_nb),
+                     impact_time_error=float(np.max(np.abs(times[:k_nb] - exact_t[:k_nb]))),
+                     velocity_error=float(np.max(np.abs(vpre[:k_nb] + np.sqrt(2 * G * h)))),
+                     energy_error=float("nan"), seconds=median_time(nb, repeats=3), compile_seconds=compile_nb))
     for method in ("DOP853", "RK45"):
         tt = time.perf_counter()
         times, vpre, _ = scipy_bouncer(floor, h, 0.0, N_IMP, method)
@@ -145,6 +162,14 @@ def main():
     rows.append(dict(case="table", method="nhjax simulate_impacts (Dopri5)", impacts=n, impact_time_error=et,
                      velocity_error=ev, energy_error=float(tr.energy_error), seconds=t_nh,
                      compile_seconds=compile_table, status=int(tr.status)))
+    pt = np.array([G, float(table.A), float(table.omega), float(table.restitution)])
+    nb = lambda: numba_bounce(np.asarray(x0, float), 0.0, 600.0, pt, N_IMP, TOL, TOL, dtmax, 1e-3)  # noqa: E731
+    nb()
+    times, vpre, post, k_nb, st_nb, _ = nb()
+    et, ev = local_errors(times[:k_nb], post[:k_nb], vpre[:k_nb])
+    rows.append(dict(case="table", method="numba DP5 event loop (peers/impacts.py)", impacts=int(k_nb),
+                     impact_time_error=et, velocity_error=ev, energy_error=float("nan"),
+                     seconds=median_time(nb, repeats=3), compile_seconds=0.0, status=int(st_nb)))
     for method in ("DOP853", "RK45"):
         tt = time.perf_counter()
         times, vpre, post = scipy_bouncer(table, 0.1, 0.0, N_IMP, method)
@@ -164,13 +189,13 @@ def main():
     # ------------------------------------------------------------- batch throughput
     batch = []
     rng = np.random.default_rng(0)
-    for B, chunk in ((256, 256), (1024, 256), (1024, 32)):
+    # lock-step lanes refilled from the member queue; chunks: one per core
+    for B, lanes in ((256, 16), (1024, 16), (1024, 64)):
         gam = rng.uniform(1.5, 4.0, B)
         ball = BouncingBall(A=1.0, omega=2 * np.pi, restitution=0.8)
         balls = eqx.tree_at(lambda s: s.A, ball, jnp.asarray(gam * G / (2 * np.pi) ** 2))
         run = lambda: nhjax.simulate_impacts_batch(balls, jnp.array([0.05, 0.0]), 20.0,  # noqa: E731
-                                                   in_axes={"system": ["A"]}, max_impacts=200,
-                                                   chunk_size=chunk)
+                                                   in_axes={"system": ["A"]}, max_impacts=200, lanes=lanes)
         t = time.perf_counter()
         out = run()
         first = time.perf_counter() - t
@@ -179,14 +204,29 @@ def main():
         sec = time.perf_counter() - t
         iters = np.asarray(out.num_steps)
         imps = np.asarray(out.num_impacts)
-        batch.append(dict(members=B, chunk_size=chunk, seconds=sec, first_call_seconds=first, members_per_second=B / sec,
-                          impacts_per_second=float(imps.sum() / sec),
+        # impact-time error of the batch: each flight's impact against the exact parabola's
+        # root (NumPy) from the member's own previous post-impact state, 16 members
+        errs = []
+        for i in np.linspace(0, B - 1, 16).astype(int):
+            bi = BouncingBall(A=float(gam[i] * G / (2 * np.pi) ** 2), omega=2 * np.pi, restitution=0.8)
+            ti, xp = np.asarray(out.impact_times[i]), np.asarray(out.x_post[i])
+            rebound = np.asarray(out.normal_velocity_post[i][:, 0]) > 1e-9  # a free flight follows
+            for j in range(min(int(imps[i]), 30) - 1):
+                if not rebound[j]:  # came to rest on the table: no parabola to compare with
+                    continue
+                ref = bi.reference_impacts(ti[j], xp[j, 0], xp[j, 1], 1)
+                if np.isfinite(ref["times"][0]):
+                    errs.append(abs(ref["times"][0] - ti[j + 1]))
+        err = float(np.max(errs)) if errs else float("nan")
+        batch.append(dict(members=B, lanes=lanes, seconds=sec, first_call_seconds=first, members_per_second=B / sec,
+                          impacts_per_second=float(imps.sum() / sec), impact_time_error=err,
                           loop_iterations=dict(min=int(iters.min()), median=float(np.median(iters)),
                                                max=int(iters.max())),
                           status_counts=np.bincount(np.asarray(out.status), minlength=5).tolist()))
-        print(f"batch {B:5d} bouncers (Gamma in [1.5, 4], 20 table periods, chunks of {chunk}): {sec:.2f} s -> "
+        print(f"batch {B:5d} bouncers (Gamma in [1.5, 4], 20 table periods, {lanes} lanes per core): {sec:.2f} s -> "
               f"{B / sec:.0f} members/s, {imps.sum() / sec:.0f} impacts/s (first call {first:.1f} s); "
-              f"loop iterations per member min/median/max {iters.min()}/{np.median(iters):.0f}/{iters.max()}")
+              f"impact-time error {err:.1e} s; loop iterations per member min/median/max "
+              f"{iters.min()}/{np.median(iters):.0f}/{iters.max()}")
 
     # ------------------------------------------------------------- compile times
     compiles = {}

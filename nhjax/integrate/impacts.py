@@ -59,11 +59,15 @@ Rules (documented behaviour)
 
 Gradients
 ---------
-The loop is a ``lax.while_loop``: forward mode (``jax.jvp``, ``jax.jacfwd``)
-goes through it, reverse mode (``jax.grad``) does not (JAX has no reverse rule
-for while loops). Differentiate with forward mode: the number of tangents is the
-number of differentiated inputs (initial data, amplitude, frequency,
-restitution: a handful), and forward mode vmaps. The impact-time dependence
+By default the loop is a ``lax.while_loop``: forward mode (``jax.jvp``,
+``jax.jacfwd``) goes through it, reverse mode does not (JAX has no reverse rule
+for while loops). With ``adjoint="reverse"`` it is an
+``equinox.internal.while_loop(kind="checkpointed", max_steps=max_steps)`` (as
+diffrax's RecursiveCheckpointAdjoint: recursive checkpointing, the forward loop
+recomputed piecewise in the backward pass) and the solver's stage loop a bounded
+one, so ``jax.grad`` / ``jax.vjp`` go through the impacts (and forward mode does
+not). Forward mode suits a handful of differentiated inputs, reverse mode a
+scalar loss of many. The impact-time dependence
 (the saltation correction) is in the derivative: the root tau* carries the
 implicit derivative dtau* = -dG/G' (one Newton step whose value is exactly
 zero), the event state y(tau*) + f dtau*, and every later step starts from it.
@@ -83,6 +87,7 @@ import dataclasses
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -97,7 +102,8 @@ from ..mechanics.impacts import (
     restitution_of,
 )
 
-__all__ = ["ImpactTrajectory", "STATUS", "simulate_impacts", "simulate_impacts_batch", "solve_impacts"]
+__all__ = ["ImpactTrajectory", "STATUS", "simulate_batch_impacts", "simulate_impacts", "simulate_impacts_batch",
+           "solve_impacts"]
 
 STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
 # loop iterations without progress in time after which the solve is declared stalled
@@ -211,45 +217,34 @@ def _ulp(t):
     return jnp.spacing(jnp.abs(t)) + jnp.finfo(jnp.float64).tiny
 
 
-def solve_impacts(
-    system,
-    x0,
-    t1,
-    *,
-    t0=0.0,
-    ts=None,
-    solver=None,
-    rtol=1e-10,
-    atol=1e-10,
-    dt0=None,
-    dtmax=None,
-    max_steps: int = 100_000,
-    max_impacts: int = 1000,
-    rest_velocity=1e-6,
-    graze_tol=1e-12,
-    release_tol=1e-10,
-    event_samples: int = 4,
-    locate_iterations: int = 60,
-) -> ImpactTrajectory:
-    """The pure, jittable, vmappable solve behind ``simulate_impacts`` (one member).
+def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10, dt0=None, dtmax=None,
+             max_steps: int = 100_000, max_impacts: int = 1000, rest_velocity=1e-6, graze_tol=1e-12,
+             release_tol=1e-10, event_samples: int = 4, locate_iterations: int = 60, reverse: bool = False):
+    """The event loop of one member as pieces, a dict of functions:
 
-    No input checks and no exceptions: failures are in ``status``. ``ts``: 1-D array of
-    save times in [t0, t1] (None: none saved). Everything numeric may be traced
-    (differentiate with jax.jvp/jacfwd); ``solver``, ``max_steps``, ``max_impacts``,
-    ``event_samples``, ``locate_iterations`` and whether ``dtmax`` is None are static.
-    To batch: ``jax.vmap(lambda s, x: solve_impacts(s, x, t1, **options))`` (this is
-    what ``simulate_impacts_batch`` does in chunks)."""
+    * ``init(x0) -> carry`` (the member's start: contact modes, controller, solver state);
+    * ``body(carry) -> carry``: one loop iteration (a step or a root-finding step); an
+      impact's record row is left in ``carry["rec"]`` at index ``carry["rec_row"]``
+      (N: none) instead of being written into an N-row record inside the iteration;
+    * ``cond(carry)``: not finished; ``records0()``: the empty N-row impact record;
+      ``record(records, carry)``: writes the iteration's row;
+    * ``finish_fields(carry, x0)``: the trajectory's other fields;
+      ``finish(fields, records) -> ImpactTrajectory``.
+
+    ``solve_impacts`` runs them in one while loop (``reverse``: a checkpointed one); the
+    lock-step batch (``_lockstep_chunk``) runs ``body`` on many lanes at once, writes the
+    rows straight into each member's slot and refills finished lanes with new members."""
     solver = diffrax.Dopri5() if solver is None else solver
     if getattr(solver, "scan_kind", "") is None:
         # diffrax's default stage loop is a checkpointed while loop, which has no
-        # forward-mode rule; a plain lax loop keeps jvp/jacfwd through the solve working
-        solver = dataclasses.replace(solver, scan_kind="lax")
-    x0 = jnp.asarray(x0, float)
-    dtype = x0.dtype
+        # forward-mode rule; a plain lax loop keeps jvp/jacfwd through the solve working,
+        # a bounded loop (over the known number of stages) has a reverse-mode rule too
+        solver = dataclasses.replace(solver, scan_kind="bounded" if reverse else "lax")
+    dtype = jnp.zeros((), float).dtype
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     n = system.n
-    k = _num_contacts(system, t0, x0)
+    k = _num_contacts(system, t0, jnp.zeros(2 * n, dtype))
     alpha = restitution_of(system, k)
     rest_velocity = jnp.asarray(rest_velocity, dtype)
     graze_tol = jnp.asarray(graze_tol, dtype)
@@ -289,34 +284,45 @@ def solve_impacts(
     controller = diffrax.PIDController(rtol=rtol, atol=atol, dtmax=dtmax)
     order = solver.error_order(term)
 
-    # -- initial contact modes: resting contacts (gap ~ 0, normal velocity ~ 0, compressive)
-    q0, qd0 = split(x0)
-    psi0, _, Psi0 = contact_kinematics(system, t0, q0, qd0)
-    cand = (psi0 <= graze_tol) & (jnp.abs(Psi0) <= rest_velocity)
-    _, _, mu0, _ = kkt(t0, x0, cand)
-    persistent0 = cand & (mu0 > 0)
+    def records0():
+        """The impact record (rows written by ``record``; NaN past the last impact)."""
+        nan = jnp.asarray(jnp.nan, dtype)
+        return dict(
+            imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
+            imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
+            imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
+            imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
+        )
 
-    y0 = jnp.concatenate([x0, jnp.zeros((1,), dtype)])
-    tnext, cstate = controller.init(term, t0, t1, y0, dt0, persistent0, solver.func, order)
-    h0 = jax.lax.stop_gradient(jnp.minimum(tnext, t1) - t0)
-    sstate = solver.init(term, t0, t0 + h0, y0, persistent0)
-    nan = jnp.asarray(jnp.nan, dtype)
-    zi = jnp.zeros((), jnp.int32)
-    carry = dict(
-        t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
-        persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
-        n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
-        imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
-        imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
-        imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
-        imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
-        E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
-        release_time=jnp.full((k,), nan),
-        min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
-        contact_res=jnp.zeros((), dtype),
-        save_idx=zi, ys=jnp.full((ns, 2 * n + 1), nan),
-    )
-    carry = jax.tree_util.tree_map(jnp.asarray, carry)
+    def init(x0):
+        x0 = jnp.asarray(x0, dtype)
+        # -- initial contact modes: resting contacts (gap ~ 0, normal velocity ~ 0, compressive)
+        q0, qd0 = split(x0)
+        psi0, _, Psi0 = contact_kinematics(system, t0, q0, qd0)
+        cand = (psi0 <= graze_tol) & (jnp.abs(Psi0) <= rest_velocity)
+        _, _, mu0, _ = kkt(t0, x0, cand)
+        persistent0 = cand & (mu0 > 0)
+
+        y0 = jnp.concatenate([x0, jnp.zeros((1,), dtype)])
+        tnext, cstate = controller.init(term, t0, t1, y0, dt0, persistent0, solver.func, order)
+        h0 = jax.lax.stop_gradient(jnp.minimum(tnext, t1) - t0)
+        sstate = solver.init(term, t0, t0 + h0, y0, persistent0)
+        nan = jnp.asarray(jnp.nan, dtype)
+        zi = jnp.zeros((), jnp.int32)
+        carry = dict(
+            t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
+            persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
+            n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
+            rec_row=jnp.asarray(N, jnp.int32), rec=jax.tree_util.tree_map(lambda a: a[0], records0()),
+            E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
+            release_time=jnp.full((k,), nan),
+            min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
+            contact_res=jnp.zeros((), dtype),
+            save_idx=zi, ys=jnp.full((ns, 2 * n + 1), nan),
+        )
+        carry = jax.tree_util.tree_map(jnp.asarray, carry)
+        return carry
+
 
     def save(c, t_b, interp):
         """Save every pending time <= t_b from the step's dense output."""
@@ -330,6 +336,8 @@ def solve_impacts(
 
         if ns == 0:
             return c["save_idx"], c["ys"]
+        if reverse:  # a loop with a reverse-mode rule (at most ns saves per step)
+            return eqxi.while_loop(cond, one, (c["save_idx"], c["ys"]), max_steps=ns, kind="bounded")
         return jax.lax.while_loop(cond, one, (c["save_idx"], c["ys"]))
 
     def project(t, y, persistent):
@@ -399,15 +407,13 @@ def solve_impacts(
         E_pre, E_post = energy(x_star), energy(x_plus)
         row = jnp.where(impact, c["n_imp"], N)  # out of range: dropped
         out = dict(c)
-        out["imp_t"] = c["imp_t"].at[row].set(t_star, mode="drop")
-        out["imp_mask"] = c["imp_mask"].at[row].set(hitting, mode="drop")
-        out["imp_x_pre"] = c["imp_x_pre"].at[row].set(x_star, mode="drop")
-        out["imp_x_post"] = c["imp_x_post"].at[row].set(x_plus, mode="drop")
-        out["imp_Psi_pre"] = c["imp_Psi_pre"].at[row].set(Psi, mode="drop")
-        out["imp_Psi_post"] = c["imp_Psi_post"].at[row].set(Psi_post, mode="drop")
-        out["imp_mu"] = c["imp_mu"].at[row].set(mu_new, mode="drop")
-        out["imp_E_pre"] = c["imp_E_pre"].at[row].set(E_pre, mode="drop")
-        out["imp_E_post"] = c["imp_E_post"].at[row].set(E_post, mode="drop")
+        # the impact's record row, written by the driver (``record``) after the iteration: the
+        # N-row record stays out of the iteration's conditionals (under vmap, selects that
+        # would copy it every iteration)
+        out["rec_row"] = row.astype(jnp.int32)
+        out["rec"] = dict(imp_t=t_star, imp_mask=hitting, imp_x_pre=x_star, imp_x_post=x_plus,
+                          imp_Psi_pre=Psi, imp_Psi_post=Psi_post, imp_mu=mu_new, imp_E_pre=E_pre,
+                          imp_E_post=E_post)
         out["E_jumps"] = c["E_jumps"] + (E_post - E_pre)
         out["n_imp"] = c["n_imp"] + impact.astype(jnp.int32)
         out["n_rel"] = c["n_rel"] + jnp.sum(releasing).astype(jnp.int32)
@@ -423,6 +429,7 @@ def solve_impacts(
         return out
 
     def body(c):
+        c = dict(c, rec_row=jnp.asarray(N, jnp.int32))
         locate = c["phase"] == 1
         t = c["t"]
         persistent = c["persistent"]
@@ -585,26 +592,98 @@ def solve_impacts(
     def cond(c):
         return (c["t"] < t1) & (c["status"] == 0) & (c["n_steps"] < max_steps)
 
-    c = jax.lax.while_loop(cond, body, carry)
-    status = jnp.where((c["status"] == 0) & (c["t"] < t1), 2, c["status"])
-    x_final = c["y"][:-1]
-    W = c["y"][-1]
-    energy_error = energy(x_final) - energy(x0) - W - c["E_jumps"]
-    saved = jnp.arange(ns) < c["save_idx"]
-    return ImpactTrajectory(
-        ts=jnp.where(saved, ts, jnp.nan), xs=c["ys"][:, :-1], work=c["ys"][:, -1],
-        t_final=c["t"], x_final=x_final,
-        num_impacts=c["n_imp"], impact_times=c["imp_t"], impact_contacts=c["imp_mask"],
-        x_pre=c["imp_x_pre"], x_post=c["imp_x_post"],
-        normal_velocity_pre=c["imp_Psi_pre"], normal_velocity_post=c["imp_Psi_post"],
-        impulses=c["imp_mu"], energy_pre=c["imp_E_pre"], energy_post=c["imp_E_post"],
-        energy_jumps=c["E_jumps"], energy_error=energy_error,
-        persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
-        num_releases=c["n_rel"],
-        min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
-        num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
-        status=status, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
-    )
+    def record(records, c):
+        """Write the iteration's impact row (if any) into the record."""
+        return {key: records[key].at[c["rec_row"]].set(c["rec"][key], mode="drop") for key in records}
+
+    def finish_fields(c, x0):
+        """The ``ImpactTrajectory`` fields other than the impact record."""
+        status = jnp.where((c["status"] == 0) & (c["t"] < t1), 2, c["status"])
+        x_final = c["y"][:-1]
+        W = c["y"][-1]
+        energy_error = energy(x_final) - energy(x0) - W - c["E_jumps"]
+        saved = jnp.arange(ns) < c["save_idx"]
+        return dict(
+            ts=jnp.where(saved, ts, jnp.nan), xs=c["ys"][:, :-1], work=c["ys"][:, -1],
+            t_final=c["t"], x_final=x_final, num_impacts=c["n_imp"],
+            energy_jumps=c["E_jumps"], energy_error=energy_error,
+            persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
+            num_releases=c["n_rel"],
+            min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
+            num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
+            status=status,
+        )
+
+    def finish(fields, records):
+        return ImpactTrajectory(
+            **fields, impact_times=records["imp_t"], impact_contacts=records["imp_mask"],
+            x_pre=records["imp_x_pre"], x_post=records["imp_x_post"],
+            normal_velocity_pre=records["imp_Psi_pre"], normal_velocity_post=records["imp_Psi_post"],
+            impulses=records["imp_mu"], energy_pre=records["imp_E_pre"], energy_post=records["imp_E_post"],
+            n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
+        )
+
+    return dict(init=init, body=body, cond=cond, records0=records0, record=record,
+                finish_fields=finish_fields, finish=finish)
+
+
+def solve_impacts(
+    system,
+    x0,
+    t1,
+    *,
+    t0=0.0,
+    ts=None,
+    solver=None,
+    rtol=1e-10,
+    atol=1e-10,
+    dt0=None,
+    dtmax=None,
+    max_steps: int = 100_000,
+    max_impacts: int = 1000,
+    rest_velocity=1e-6,
+    graze_tol=1e-12,
+    release_tol=1e-10,
+    event_samples: int = 4,
+    locate_iterations: int = 60,
+    adjoint: str = "forward",
+) -> ImpactTrajectory:
+    """The pure, jittable, vmappable solve behind ``simulate_impacts`` (one member).
+
+    ``adjoint`` (static): "forward" (a ``lax.while_loop``: jax.jvp / jax.jacfwd go
+    through it, jax.grad does not) or "reverse" (``equinox.internal.while_loop`` with
+    ``kind="checkpointed"`` and ``max_steps``, as diffrax's RecursiveCheckpointAdjoint:
+    jax.grad / jax.vjp go through it, forward mode does not). Both give the same values.
+
+    No input checks and no exceptions: failures are in ``status``. ``ts``: 1-D array of
+    save times in [t0, t1] (None: none saved). Everything numeric may be traced
+    (differentiate with jax.jvp/jacfwd); ``solver``, ``max_steps``, ``max_impacts``,
+    ``event_samples``, ``locate_iterations`` and whether ``dtmax`` is None are static.
+    To batch: ``jax.vmap(lambda s, x: solve_impacts(s, x, t1, **options))`` (this is
+    what ``simulate_impacts_batch`` does in chunks)."""
+    mc = _machine(
+        system, t1, t0=t0, ts=ts, solver=solver, rtol=rtol, atol=atol, dt0=dt0, dtmax=dtmax,
+        max_steps=max_steps, max_impacts=max_impacts, rest_velocity=rest_velocity, graze_tol=graze_tol,
+        release_tol=release_tol, event_samples=event_samples, locate_iterations=locate_iterations,
+        reverse=adjoint == "reverse")
+    x0 = jnp.asarray(x0, float)
+
+    def step(cr):
+        c, records = cr
+        c = mc["body"](c)
+        return c, mc["record"](records, c)
+
+    start = (mc["init"](x0), mc["records0"]())
+    if adjoint == "reverse":
+        # reverse mode: recursive checkpointing over at most max_steps iterations (the
+        # loop's exit is the same cond, so values are those of the forward loop)
+        c, records = eqxi.while_loop(lambda cr: mc["cond"](cr[0]), step, start, max_steps=int(max_steps),
+                                     kind="checkpointed")
+    elif adjoint == "forward":
+        c, records = jax.lax.while_loop(lambda cr: mc["cond"](cr[0]), step, start)
+    else:
+        raise ValueError(f"solve_impacts: adjoint must be 'forward' or 'reverse', got {adjoint!r}")
+    return mc["finish"](mc["finish_fields"](c, x0), records)
 
 
 def _concrete(*trees) -> bool:
@@ -658,6 +737,7 @@ def simulate_impacts(
     release_tol: float = 1e-10,
     event_samples: int = 4,
     constraint_tol: float = 1e-8,
+    adjoint: str = "forward",
 ) -> ImpactTrajectory:
     """Integrate a system with one-sided constraints psi(t, q) >= 0 through its impacts.
 
@@ -688,6 +768,9 @@ def simulate_impacts(
     event_samples : dense-output samples per step at which events are looked for.
     constraint_tol : largest violation of psi >= 0 and of the permanent constraints
         accepted in x0.
+    adjoint : "forward" (default: jax.jvp / jax.jacfwd differentiate the solve) or
+        "reverse" (jax.grad / jax.vjp: the event loop is a checkpointed while loop of at
+        most max_steps iterations, as diffrax's RecursiveCheckpointAdjoint). Same values.
 
     Returns an ``ImpactTrajectory``. Jit, vmap and forward-mode differentiation go
     through (then failures become ``equinox.error_if`` runtime errors); for batches
@@ -695,6 +778,7 @@ def simulate_impacts(
     """
     owner = "simulate_impacts"
     choice("on_max_impacts", on_max_impacts, ("raise", "stop"), owner=owner)
+    choice("adjoint", adjoint, ("forward", "reverse"), owner=owner)
     for name, v in (("max_impacts", max_impacts), ("max_steps", max_steps), ("event_samples", event_samples)):
         integer(name, v, minimum=1, owner=owner)
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, constraint_tol=constraint_tol, owner=owner)
@@ -745,7 +829,7 @@ def simulate_impacts(
         system, x0, arr(t1), t0=arr(t0), ts=ts, solver=solver, rtol=arr(rtol), atol=arr(atol),
         dt0=arr(dt0), dtmax=arr(dtmax), max_steps=int(max_steps), max_impacts=int(max_impacts),
         rest_velocity=arr(rest_velocity), graze_tol=arr(graze_tol), release_tol=arr(release_tol),
-        event_samples=int(event_samples),
+        event_samples=int(event_samples), adjoint=adjoint,
     )
     fatal = (2, 3, 4) if on_max_impacts == "stop" else (1, 2, 3, 4)
     if not _concrete(traj.status):
@@ -760,47 +844,165 @@ def simulate_impacts(
     return traj
 
 
-def _leading(tree, axes, lo, hi, B):
-    """Members lo..hi-1 (clipped to B - 1: a short last chunk repeats the last member)."""
-    idx = np.minimum(np.arange(lo, hi), B - 1)
-
-    def take(a, ax):
-        return a if ax is None else jnp.take(jnp.asarray(a), idx, axis=ax)
-
-    return jax.tree_util.tree_map(take, tree, axes, is_leaf=lambda a: a is None)
+def _member_of(tree, axes, idx):
+    """Member ``idx`` of ``tree`` (leaves with a leading member axis where ``axes`` is 0)."""
+    return jax.tree_util.tree_map(lambda a, ax: a if ax is None else a[idx], tree, axes,
+                                  is_leaf=lambda a: a is None)
 
 
 @eqx.filter_jit
-def _batch_chunk(system, x0, t1, sys_axes, x_axis, options):
-    def member(s, x):
-        return solve_impacts(s, x, t1, **options)
+def _lockstep_chunk(system, x0, t1, n_members, sys_axes, x_axis, options, lanes):
+    """Members ``0 .. n_members - 1`` of ``system`` / ``x0`` (member axis 0 where
+    ``sys_axes`` / ``x_axis`` say 0; size M = the chunk's capacity) by a lock-step loop:
+    ``lanes`` members step together (``_machine``'s body vmapped over the lanes, every lane
+    with its own step size, impacts and contact modes); a lane whose member ended (t1,
+    max_impacts, failure) stays idle until R = lanes / 16 lanes are idle, then every idle
+    lane writes its member's results into the member's slot and takes the next member of
+    the queue. Impact rows go straight into the member's slot of the [M, N, ...] record
+    as they happen. Each member takes exactly the iterations of its own ``solve_impacts``."""
+    leaves = [a for a, ax in zip(jax.tree_util.tree_leaves((system, x0)),
+                                 jax.tree_util.tree_leaves((sys_axes, x_axis), is_leaf=lambda a: a is None))
+              if ax is not None]
+    M = leaves[0].shape[0]
+    L = max(1, min(int(lanes), M))
+    R = max(1, L // 16)
+    n_members = jnp.asarray(n_members, jnp.int32)
+    lane = jnp.arange(L, dtype=jnp.int32)
+    mc0 = _machine(_member_of(system, sys_axes, 0), t1, **options)
 
-    return eqx.filter_vmap(member, in_axes=(sys_axes, x_axis))(system, x0)
+    def parts(mem):
+        s = _member_of(system, sys_axes, mem)
+        x = x0 if x_axis is None else x0[mem]
+        return x, _machine(s, t1, **options)
+
+    def init_lane(mem):
+        x, mc = parts(mem)
+        return mc["init"](x)
+
+    def body_lane(mem, c):
+        _, mc = parts(mem)
+        go = mc["cond"](c)
+        new = mc["body"](c)
+        new = jax.tree_util.tree_map(lambda a, b: jnp.where(go, a, b), new, c)
+        return new, go
+
+    def active_lane(mem, c):
+        return parts(mem)[1]["cond"](c)
+
+    def fields_lane(mem, c):
+        x, mc = parts(mem)
+        return mc["finish_fields"](c, x)
+
+    def safe(mem):  # empty lanes (member M) compute member M - 1, unused
+        return jnp.minimum(mem, M - 1)
+
+    # every member's results, filled in as members end; impact rows as they happen
+    shape = jax.eval_shape(lambda c: jax.vmap(fields_lane)(lane, c), jax.eval_shape(jax.vmap(init_lane), lane))
+    out = jax.tree_util.tree_map(lambda sd: jnp.zeros((M,) + sd.shape[1:], sd.dtype), shape)
+    rec = jax.tree_util.tree_map(lambda a: jnp.broadcast_to(a, (M,) + a.shape), mc0["records0"]())
+
+    def active_of(st):
+        return (st["mem"] < n_members) & jax.vmap(active_lane)(safe(st["mem"]), st["c"])
+
+    def want_refill(st):
+        return (st["next"] < n_members) & (jnp.sum(~active_of(st)) >= R)
+
+    def retire(st, out, which):
+        """Write the lanes ``which`` (and holding a member) into their members' slots."""
+        has = which & (st["mem"] < n_members)
+        done = jax.vmap(fields_lane)(safe(st["mem"]), st["c"])
+        dest = jnp.where(has, st["mem"], M + lane)  # out of range: dropped (unique)
+        return jax.tree_util.tree_map(lambda o, v: o.at[dest].set(v, mode="drop", unique_indices=True), out, done)
+
+    def refill(args):
+        st, out, rec = args
+        idle = ~active_of(st)
+        out = retire(st, out, idle)
+        # the k-th idle lane takes member next + k
+        rank = (jnp.cumsum(idle) - 1).astype(jnp.int32)
+        new_mem = jnp.where(idle, st["next"] + rank, st["mem"])
+        new_mem = jnp.where(idle & (new_mem >= n_members), M, new_mem)
+        fresh = jax.vmap(init_lane)(safe(new_mem))
+        take = idle & (new_mem < n_members)
+        c = jax.tree_util.tree_map(lambda a, b: jnp.where(take.reshape((L,) + (1,) * (a.ndim - 1)), a, b),
+                                   fresh, st["c"])
+        nxt = jnp.minimum(st["next"] + jnp.sum(idle).astype(jnp.int32), n_members)
+        return dict(mem=new_mem, c=c, next=nxt), out, rec
+
+    # In the stepping loop the lanes' state has the lane axis last: each state component is
+    # a contiguous vector over the lanes, which XLA's elementwise loops vectorize.
+    def first(tree):
+        return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, -1, 0) if a.ndim else a, tree)
+
+    def last(tree):
+        return jax.tree_util.tree_map(lambda a: jnp.moveaxis(a, 0, -1) if a.ndim else a, tree)
+
+    def active_last(st):
+        act = jax.vmap(active_lane, in_axes=(0, -1))(safe(st["mem"]), st["c"])
+        return (st["mem"] < n_members) & act
+
+    def want_refill_last(st):
+        return (st["next"] < n_members) & (jnp.sum(~active_last(st)) >= R)
+
+    def steps(sr):
+        st, rec = sr
+        c, go = jax.vmap(body_lane, in_axes=(0, -1), out_axes=(-1, 0))(safe(st["mem"]), st["c"])
+        dest = jnp.where(go & (st["mem"] < n_members), st["mem"], M)  # out of range: dropped
+        rows = first(c["rec"])
+        rec = {key: rec[key].at[dest, c["rec_row"]].set(rows[key], mode="drop") for key in rec}
+        return dict(st, c=c), rec
+
+    def run_lanes(args):
+        st, out, rec = args
+        st = dict(st, c=last(st["c"]))
+        st, rec = jax.lax.while_loop(lambda sr: jnp.any(active_last(sr[0])) & ~want_refill_last(sr[0]), steps,
+                                     (st, rec))
+        st = dict(st, c=first(st["c"]))
+        return jax.lax.cond(want_refill(st), refill, lambda a: a, (st, out, rec))
+
+    def queue_left(args):
+        st = args[0]
+        return jnp.any(active_of(st)) | (st["next"] < n_members)
+
+    mem0 = jnp.where(lane < n_members, lane, M)
+    st = dict(mem=mem0, c=jax.vmap(init_lane)(safe(mem0)), next=jnp.minimum(n_members, L))
+    st, out, rec = jax.lax.while_loop(queue_left, run_lanes, (st, out, rec))
+    out = retire(st, out, jnp.ones(L, bool))  # the last members
+    return mc0["finish"](out, rec)
 
 
-def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size: int = 32, workers=None,
+def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lanes: int = 16, workers=None,
                            saveat=0, **options) -> ImpactTrajectory:
-    """Many impact solves at once: ``solve_impacts`` vmapped over chunks of members, the
-    chunks run concurrently on ``workers`` threads (default: one per CPU core; XLA
-    releases the GIL while a compiled chunk runs). A vmapped chunk runs as long as its
-    slowest member (e.g. a chattering one), so small chunks (default 32) waste less.
+    """Many impact solves at once, by a lock-step loop with a member queue.
 
-    ``in_axes``: dict with keys "system" and "x0" (vmap axes: 0 for batched, None for
+    The members are cut into chunks (default: one per worker), each a compiled program
+    run on its own thread (default: one per CPU core; XLA releases the GIL while a
+    compiled chunk runs). In a chunk ``lanes`` members step together (the event loop of
+    ``solve_impacts``, one iteration per lane and loop pass, each lane with its own step
+    size, impacts and contact modes); when a member ends, its lane takes the next member
+    of the chunk, so members that need many more iterations than others (chattering,
+    many impacts) do not hold the rest up. Each member's result is that of its own
+    ``solve_impacts`` (same steps, same root finds).
+
+    ``in_axes``: dict with keys "system" and "x0" (0 for batched along axis 0, None for
     shared). For the system also a list of field names whose arrays carry the member
     axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
     to vary only the amplitude, or a pytree of axes.
-    Default: x0 batched if it is 2-D, the system shared. ``saveat``: 0 (nothing saved,
-    default) or an int / 1-D array of save times as in ``simulate_impacts``; other
-    keyword arguments are ``solve_impacts``'s. No exceptions: every member's ``status``
-    says how it ended. Returns an ``ImpactTrajectory`` whose fields have a leading
-    member axis.
+    Default: x0 batched if it is 2-D, the system shared. ``chunk_size``: most members per
+    compiled chunk (the batch is split into at least one chunk per worker). ``lanes``: members
+    stepped together per chunk. ``saveat``: 0 (nothing saved, default) or an int / 1-D
+    array of save times as in ``simulate_impacts``; other keyword arguments are
+    ``solve_impacts``'s. No exceptions: every member's ``status`` says how it ended.
+    Returns an ``ImpactTrajectory`` whose fields have a leading member axis.
     """
     import os
     from concurrent.futures import ThreadPoolExecutor
 
     owner = "simulate_impacts_batch"
     _, t1 = time_span(options.get("t0", 0.0), t1, owner=owner)
-    chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
+    if chunk_size is not None:
+        chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
+    lanes = integer("lanes", lanes, minimum=1, owner=owner)
     if saveat != 0:
         check_saveat(saveat, options.get("t0", 0.0), t1, owner=owner)
     solver_settings(rtol=options.get("rtol"), atol=options.get("atol"), dt0=options.get("dt0"), owner=owner)
@@ -846,20 +1048,82 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size: int = 32
         options["dtmax"] = getattr(sys0, "event_resolution", None)
     opts = {k: (jnp.asarray(v, float) if isinstance(v, float) else v) for k, v in options.items()}
     opts["ts"] = ts
+    if x_axis not in (0, None):
+        raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis}", "in_axes", in_axes)
     workers = int(workers or os.cpu_count() or 1)
-    chunk = int(min(chunk_size, max(1, -(-B // workers))))
+    chunk = -(-B // workers)  # at least one chunk per worker
+    if chunk_size is not None:
+        chunk = min(chunk, chunk_size)
+    chunk = int(max(1, min(chunk, B)))
     starts = list(range(0, B, chunk))
+    t1a = jnp.asarray(t1, float)
+
+    # Members are dealt to the chunks in turn (chunk j: members j, j + W, ...): a sweep over a
+    # sorted parameter has its slow members (chattering, many impacts) side by side, and
+    # contiguous chunks would give one worker most of them.
+    W = len(starts)
+    perm = np.concatenate([np.arange(j, B, W) for j in range(W)])
+
+    def members(lo):
+        """Chunk members perm[lo .. lo+chunk-1] (host-side numpy; a short last chunk is padded
+        with copies of its last member, which are not solved)."""
+        idx = perm[np.minimum(np.arange(lo, lo + chunk), B - 1)]
+        s = jax.tree_util.tree_map(lambda a, ax: a if ax is None else np.asarray(a)[idx], system, sys_axes,
+                                   is_leaf=lambda a: a is None)
+        x = x0 if x_axis is None else np.asarray(x0)[idx]
+        return s, x, np.int32(min(chunk, B - lo))
 
     def run(lo):
-        s = _leading(system, sys_axes, lo, lo + chunk, B)
-        x = x0 if x_axis is None else _leading(x0, x_axis, lo, lo + chunk, B)
-        return jax.block_until_ready(_batch_chunk(s, x, jnp.asarray(t1, float), sys_axes, x_axis, opts))
+        s, x, nm = members(lo)
+        return jax.device_get(_lockstep_chunk(s, x, t1a, nm, sys_axes, x_axis, opts, lanes))
 
     first = run(starts[0])  # compile once, then the rest concurrently
     with ThreadPoolExecutor(max_workers=workers) as pool:
         rest = list(pool.map(run, starts[1:]))
     outs = [first] + rest
-    arrays, static = eqx.partition(outs[0], eqx.is_array)
-    merged = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(x) for x in a])[:B],
-                                    *[eqx.partition(o, eqx.is_array)[0] for o in outs])
+    sizes_ = [min(chunk, B - lo) for lo in starts]
+    _, static = eqx.partition(outs[0], eqx.is_array)
+    inv = np.argsort(perm)
+    merged = jax.tree_util.tree_map(
+        lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)])[inv],
+        *[eqx.partition(o, eqx.is_array)[0] for o in outs])
     return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)
+
+
+def simulate_batch_impacts(system, x0, t1, *, t0=0.0, control=None, in_axes=None, chunk_size: int = 8192,
+                           lanes=None, workers=None, progress=None, saveat=2, solver=None, rtol: float = 1e-8,
+                           atol: float = 1e-8, dt0=None, max_steps=None, stepsize_controller=None, jump_ts=None,
+                           adjoint=None, project: bool = False, project_steps=None, constraint_tol: float = 1e-8,
+                           on_guard: str = "raise", on_error: str = "raise", track_work=None,
+                           diagnostics: bool = True, **impact_options) -> ImpactTrajectory:
+    """``simulate_batch``'s signature for systems with one-sided constraints (those that
+    define ``unilateral_constraints``): the lock-step impact batch
+    (``simulate_impacts_batch``). ``in_axes`` takes ``simulate_batch``'s {"system": 0 /
+    None, "x0": 0 / None}; ``saveat``, ``rtol``, ``atol``, ``dt0``, ``solver``,
+    ``max_steps``, ``chunk_size``, ``lanes``, ``workers`` mean what they mean there;
+    further keyword arguments (``max_impacts``, ``rest_velocity``, ...) are
+    ``solve_impacts``'s. Returns an ``ImpactTrajectory`` with a leading member axis (its
+    ``status`` per member; nothing raises for a failed member). Arguments without a meaning
+    for impacts (controls, adjoints, jump times, projection, a custom step-size controller)
+    raise a ValueError naming them."""
+    owner = "simulate_batch (a system with one-sided constraints)"
+    unsupported = dict(control=control, stepsize_controller=stepsize_controller, jump_ts=jump_ts,
+                       adjoint=adjoint, project_steps=project_steps)
+    for name, v in unsupported.items():
+        if v is not None:
+            raise ValueError(f"{owner}: {name}={v!r} is not supported for impact systems; leave it None "
+                             "(or call nhjax.simulate_impacts_batch directly)")
+    if project:
+        raise ValueError(f"{owner}: project=True is not supported for impact systems; persistent contacts "
+                         "are projected by the event loop itself")
+    choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
+    choice("on_error", on_error, ("raise", "return"), owner=owner)
+    axes = {"x0": 0} if in_axes is None else dict(in_axes)
+    unknown = set(axes) - {"system", "x0"}
+    if unknown:
+        raise ValueError(f"{owner}: in_axes keys must be among 'system', 'x0'; got {sorted(unknown)}")
+    opts = dict(impact_options, t0=t0, rtol=rtol, atol=atol, dt0=dt0, solver=solver)
+    if max_steps is not None:
+        opts["max_steps"] = int(max_steps)
+    return simulate_impacts_batch(system, x0, t1, in_axes=axes, chunk_size=chunk_size,
+                                  lanes=16 if lanes is None else lanes, workers=workers, saveat=saveat, **opts)
