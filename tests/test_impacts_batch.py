@@ -61,6 +61,16 @@ def test_each_lockstep_member_is_its_own_solve():
         np.testing.assert_allclose(np.asarray(tr.xs[i]), np.asarray(one.xs), rtol=0, atol=tol)
         np.testing.assert_allclose(float(tr.t_final[i]), float(one.t_final), rtol=0, atol=tol)
         assert abs(float(tr.energy_error[i]) - float(one.energy_error)) < tol
+    # nhjax.simulate_batch sends systems with one-sided constraints to the same batch
+    via = nhjax.simulate_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=2, saveat=5,
+                               on_error="return", **OPTS)
+    assert isinstance(via, type(tr))
+    np.testing.assert_array_equal(np.asarray(via.num_impacts), n)
+    # (its chunks may group members otherwise: chattering members to the 1e-10 above)
+    np.testing.assert_allclose(np.asarray(via.impact_times), np.asarray(tr.impact_times), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(via.x_final), np.asarray(tr.x_final), rtol=0, atol=1e-10)
+    with pytest.raises(TypeError, match="max_impacts"):  # impact options on a system without impacts
+        nhjax.simulate_batch(nhjax.scenes.FallingCat(), x0, T1, max_impacts=3)
 
 
 def test_batch_sizes_must_agree():

@@ -426,6 +426,7 @@ def simulate_batch(
     on_error: str = "raise",
     track_work: bool | None = None,
     diagnostics: bool = True,
+    **impact_options,
 ) -> BatchTrajectory:
     """Simulate a batch of trajectories; returns a ``BatchTrajectory`` whose arrays have a
     leading member axis (``traj.xs[i]`` is member i's saved states) and per-member
@@ -452,9 +453,25 @@ def simulate_batch(
         solve failed) or "return" (nothing raises: every member's status is in
         ``traj.status`` / ``traj.reasons``, with its time in ``traj.t_final``; the other
         members' results are intact). Members with a bad initial state are not solved.
+    impact_options : for systems with one-sided constraints (``unilateral_constraints``:
+        bouncing balls, moving walls), which go to the lock-step impact batch
+        (``nhjax.integrate.impacts.simulate_batch_impacts``, returning an
+        ``ImpactTrajectory``): ``max_impacts``, ``rest_velocity``, ... of ``solve_impacts``.
     Other arguments as ``nhjax.simulate``.
     """
     owner = "simulate_batch"
+    if hasattr(system, "unilateral_constraints"):
+        from .impacts import simulate_batch_impacts
+
+        return simulate_batch_impacts(
+            system, x0, t1, t0=t0, control=control, in_axes=in_axes, chunk_size=chunk_size, lanes=lanes,
+            workers=workers, progress=progress, saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
+            max_steps=max_steps, stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
+            project=project, project_steps=project_steps, constraint_tol=constraint_tol, on_guard=on_guard,
+            on_error=on_error, track_work=track_work, diagnostics=diagnostics, **impact_options)
+    if impact_options:
+        raise TypeError(f"simulate_batch got unexpected keyword arguments {sorted(impact_options)} "
+                        f"({type(system).__name__} has no one-sided constraints, for which they would be meant)")
     choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
     choice("on_error", on_error, ("raise", "return"), owner=owner)
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol, owner=owner)
