@@ -96,3 +96,34 @@ def test_killed_worker_chunk_is_recomputed(client, tmp_path):
     assert len(attempts) >= 2, attempts  # chunk 1 started again ...
     assert any(int(p.name.split("-")[1]) != victim for p in attempts)  # ... in another process
     _same(dist, local)  # and nothing was lost
+
+
+# ---------------------------------------------------------------- a batch of OC problems
+def _sqrt_or_fail(x):
+    if x < 0:
+        raise ValueError(f"negative point {x}")
+    return float(np.sqrt(x))
+
+
+def test_grid_map_keeps_order_and_statuses(client):
+    from controls.distributed import map_on_client
+
+    grid = [4.0, -1.0, 9.0, 2.0, 16.0]
+    r = map_on_client(client, _sqrt_or_fail, grid, points_per_task=2)
+    assert r.status == ["ok", "error", "ok", "ok", "ok"]
+    assert "negative point -1.0" in r.errors[1]
+    assert r.values[0] == 2.0 and r.values[2] == 3.0 and r.values[3] == np.sqrt(2.0) and r.values[4] == 4.0
+
+
+def test_somersaults_over_turn_angles_equal_local_solves(client):
+    """Pontryagin somersaults for two turn angles on the workers against the same solves
+    here: the same costs to 1e-12 (relative), every terminal violation tiny."""
+    from controls.distributed import _somersault_turn, somersault_turns
+
+    turns = [-np.pi, -2.5]
+    r = somersault_turns(client, turns)
+    assert r.status == ["ok", "ok"], r.errors
+    for turn, v in zip(turns, r.values):
+        here = _somersault_turn(turn)
+        assert abs(v["cost"] - here["cost"]) <= 1e-12 * abs(here["cost"])
+        assert v["violation"] < 1e-9
