@@ -10,7 +10,9 @@ final-state error over the members. The same batch is run
     (what the workers do, without dask);
   * on a LocalCluster with 1 and 2 worker processes (1 thread each), chunks of
     ``--chunk`` members, after a warm-up run that compiles on every worker.
-Overhead per chunk = (dask time with 1 worker - local chunk-loop time) / chunks.
+Overhead per chunk: 64 tiny chunks (8 members, t1 = 0.01 s) on 1 worker against the
+same chunks in a local loop, difference / 64 (the big run's difference is printed too,
+but it mixes the overhead with the machine's load).
 
 Scaling estimate for N machines of w workers: t(N) ~ t_chunk_compute * ceil(chunks /
 (N w)) + overhead * chunks / (N w) + compile once per worker process (in parallel),
@@ -82,15 +84,27 @@ def main(argv=None):
             tr, t = _timed(lambda: simulate_batch_on_client(client, skate, X0, a.t1, **kw))
             same = float(np.max(np.abs(np.asarray(tr.xs) - np.asarray(local.xs))))
             rows[f"dask, {n} worker{'s' if n > 1 else ''}"] = (t, err(tr))
+            if n == 1:  # overhead per task, measured on tiny chunks (8 members, t1 = 0.01 s)
+                tiny = dict(opts, chunk_members=8)
+                simulate_batch_on_client(client, skate, X0[:512], 0.01, **tiny)
+                _, t_tiny = _timed(lambda: simulate_batch_on_client(client, skate, X0[:512], 0.01, **tiny))
+                nhjax.simulate_batch(skate, X0[:8], 0.01, **opts)
+                _, t_tiny_loop = _timed(lambda: [nhjax.simulate_batch(skate, X0[i:i + 8], 0.01, **opts)
+                                                 for i in range(0, 512, 8)])
+                tiny_overhead = (t_tiny - t_tiny_loop) / 64
+                print(f"  tiny chunks: 64 chunks of 8 members, t1 = 0.01 s: dask {t_tiny * 1e3:.0f} ms, "
+                      f"local loop {t_tiny_loop * 1e3:.0f} ms -> overhead {tiny_overhead * 1e3:.1f} ms per chunk")
             print(f"  {n} worker(s): first run (compiles on the workers) {t_warm:.2f} s; "
                   f"max |dask - local| = {same:.1e}")
     print(f"{'run':22s} {'time [s]':>9s} {'members/s':>10s} {'max error':>10s}")
     for k, (t, e) in rows.items():
         print(f"{k:22s} {t:9.3f} {a.members / t:10.0f} {e:10.1e}")
-    overhead = (rows["dask, 1 worker"][0] - t_loop) / chunks
+    overhead = tiny_overhead
     chunk_compute = t_loop / chunks
     speedup = rows["dask, 1 worker"][0] / rows["dask, 2 workers"][0]
-    print(f"overhead per chunk: {overhead * 1e3:.1f} ms (chunk compute {chunk_compute * 1e3:.1f} ms); "
+    big = (rows["dask, 1 worker"][0] - t_loop) / chunks
+    print(f"overhead per chunk: {overhead * 1e3:.1f} ms from tiny chunks ({big * 1e3:.1f} ms from the big run); "
+          f"chunk compute {chunk_compute * 1e3:.1f} ms; "
           f"2 workers / 1 worker speed-up {speedup:.2f}x on {os.cpu_count()} cores")
     for N in (1, 4, 16, 64):
         w = 2 * N
@@ -101,7 +115,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     (out / "dask_throughput.json").write_text(json.dumps(dict(
         members=a.members, chunk=a.chunk, t1=a.t1, rows={k: dict(seconds=t, max_error=e) for k, (t, e) in rows.items()},
-        overhead_per_chunk_s=overhead, chunk_compute_s=chunk_compute, speedup_2_over_1=speedup,
+        overhead_per_chunk_s=overhead, overhead_per_chunk_big_run_s=big, chunk_compute_s=chunk_compute, speedup_2_over_1=speedup,
         load_average=os.getloadavg()[0], cores=os.cpu_count()), indent=1))
 
 

@@ -66,6 +66,10 @@ def test_equals_local_run_with_statuses(client):
     assert np.max(np.abs(np.asarray(dist.x_final)[dist.ok] - exact[dist.ok])) < 1e-7
     with pytest.raises(nhjax.BatchError, match="37"):
         simulate_batch_on_client(client, SKATE, X0, 12.0, chunk_members=32, **OPTS)
+    # back-to-back calls with the same system (its broadcast copy must not be released
+    # by the previous call's cleanup: "lost dependencies")
+    for _ in range(3):
+        _same(simulate_batch_on_client(client, SKATE, X0, 12.0, chunk_members=32, on_error="return", **OPTS), local)
 
 
 def _slow_start(marks, index):

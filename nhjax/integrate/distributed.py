@@ -139,7 +139,9 @@ def simulate_batch_on_client(client, system, x0, t1, *, control=None, in_axes=No
     if in_axes is not None:
         kwargs["in_axes"] = in_axes
     # broadcast arguments once to the workers (not once per task)
-    shared = {k: (client.scatter(v, broadcast=True) if k not in batched and v is not None else v)
+    # (hash=False: a fresh key per call, so that releasing an earlier call's copy of the same
+    # object cannot delete this call's)
+    shared = {k: (client.scatter(v, broadcast=True, hash=False) if k not in batched and v is not None else v)
               for k, v in args.items() if k not in batched}
     tag = uuid.uuid4().hex[:8]
     futures = []
