@@ -138,11 +138,10 @@ def simulate_batch_on_client(client, system, x0, t1, *, control=None, in_axes=No
     sizes = [min(chunk_members, B - lo) for lo in starts]
     if in_axes is not None:
         kwargs["in_axes"] = in_axes
-    # broadcast arguments once to the workers (not once per task)
-    # (hash=False: a fresh key per call, so that releasing an earlier call's copy of the same
-    # object cannot delete this call's)
-    shared = {k: (client.scatter(v, broadcast=True, hash=False) if k not in batched and v is not None else v)
-              for k, v in args.items() if k not in batched}
+    # Unbatched arguments travel inside every task (not scattered once): scattered data
+    # lives only on workers, and a lost worker can take the last copy with it, which
+    # would cancel every chunk that needs it; in the task they are re-sent on a rerun.
+    shared = {k: v for k, v in args.items() if k not in batched}
     tag = uuid.uuid4().hex[:8]
     futures = []
     for i, lo in enumerate(starts):
