@@ -19,7 +19,8 @@ Scaling estimate for N machines of w workers: t(N) ~ t_chunk_compute * ceil(chun
 as long as the scheduler keeps up (a few thousand tasks per second) and the
 results (B x saved states) fit through the client's network link.
 
-Usage: nhjax bench dask_throughput [--members B] [--chunk C]   (needs nhjax[dask]).
+Usage: nhjax bench dask_throughput, or python benchmarks/dask_throughput.py [--members B]
+[--chunk C] [--t1 S] (needs nhjax[dask]).
 Writes experiments/out/bench/dask_throughput.json.
 """
 
@@ -52,7 +53,7 @@ def main(argv=None):
     ap.add_argument("--chunk", type=int, default=256)
     ap.add_argument("--t1", type=float, default=60.0)
     ap.add_argument("--out", default="experiments/out/bench")
-    a = ap.parse_args(argv)
+    a, _ = ap.parse_known_args(argv)  # `nhjax bench dask_throughput` passes the benchmark's name along
 
     from dask.distributed import Client, LocalCluster
 
