@@ -26,9 +26,11 @@ The state is the flat vector x = (q, q').
 from __future__ import annotations
 
 from collections.abc import Callable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._kkt import (
     REGULARITY_HINTS,
@@ -37,6 +39,7 @@ from ._kkt import (
     newton_project,
     regularity_margins,
 )
+from ..errors import ParameterError
 from .system import AbstractSystem
 
 __all__ = ["ConstrainedLagrangian", "Lagrangian"]
@@ -193,10 +196,54 @@ class ConstrainedLagrangian(AbstractSystem):
         q, qd = self.split(x)
         return jnp.dot(self.generalized_force(t, q, qd, u), qd)
 
-    def project(self, t, x):
-        """Nearest consistent state: minimum-norm Newton on phi(q) = 0, then the
-        kinetic-metric projection of q' onto A_all q' + a = 0."""
+    def fixed_components(self, fixed) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, velocities): boolean masks of the state components named by
+        ``fixed`` (names from ``state_names`` or indices into x = (q, q'))."""
+        owner = type(self).__name__
+        names = tuple(self.state_names)
+        n = self.n
+        if isinstance(fixed, (str, int, np.integer)):
+            fixed = (fixed,)
+        mask = np.zeros(2 * n, bool)
+        for item in fixed:
+            if isinstance(item, str):
+                if item not in names:
+                    raise ParameterError(
+                        f"{owner}.project: fixed={fixed!r} names {item!r}, which is not a state component; "
+                        f"state_names = {names or '() (pass state_names= or use indices 0..2n-1)'}",
+                        "fixed", fixed)
+                mask[names.index(item)] = True
+            elif isinstance(item, (int, np.integer)) and not isinstance(item, bool) and -2 * n <= item < 2 * n:
+                mask[int(item)] = True
+            else:
+                raise ParameterError(
+                    f"{owner}.project: fixed={fixed!r} holds {item!r}; each entry must be a state name or an "
+                    f"index into x = (q, q') in 0..{2 * n - 1}", "fixed", fixed)
+        return mask[:n], mask[n:]
+
+    def project(self, t, x, fixed=None):
+        """Consistent state near ``x``.
+
+        Without ``fixed``: the nearest one, by minimum-norm Newton on phi(q) = 0, then
+        the kinetic-metric projection of q' onto A_all q' + a = 0 (every component
+        may move).
+
+        With ``fixed`` (state names, or indices into x = (q, q')): the components
+        named stay exactly as given and the others are solved for, so that a user
+        chooses the independent coordinates (a bicycle's lean, steer and forward
+        speed) and gets the dependent ones. Positions: Newton steps on phi(q) = 0
+        in the free positions only (minimum norm among them; 8 steps, quadratic
+        convergence from a nearby guess). Velocities: the constraints are affine in
+        q', so one solve gives the free velocities exactly, with the smallest
+        correction in the kinetic metric restricted to them (unique when as many
+        velocities are free as there are constraints). The free columns of the
+        constraint Jacobians must have full row rank, else the fixed values are
+        inconsistent with the constraints and the result is not finite; check
+        ``constraint_residual`` of the result.
+        """
         q, qd = self.split(x)
+        if fixed is not None:
+            return self._project_fixed(t, q, qd, *self.fixed_components(fixed))
         phi0 = jnp.atleast_1d(self.position_constraints(t, q))
         if phi0.shape[0]:
             q = newton_project(lambda qq: jnp.atleast_1d(self.position_constraints(t, qq)), q)
@@ -206,14 +253,85 @@ class ConstrainedLagrangian(AbstractSystem):
             qd = qd + metric_projection(self.mass_matrix(q), A, r)
         return jnp.concatenate([q, qd])
 
+    def _project_fixed(self, t, q, qd, fixed_q, fixed_v):
+        owner = type(self).__name__
+        free_q, free_v = np.flatnonzero(~fixed_q), np.flatnonzero(~fixed_v)
+        phi0 = jnp.atleast_1d(self.position_constraints(t, q))
+        if phi0.shape[0]:
+            if free_q.size < phi0.shape[0]:
+                raise ParameterError(
+                    f"{owner}.project: {phi0.shape[0]} position constraints but only {free_q.size} free positions "
+                    "to satisfy them; fix fewer positions", "fixed", None)
+            sub = lambda z: jnp.atleast_1d(self.position_constraints(t, q.at[free_q].set(z)))  # noqa: E731
+            q = q.at[free_q].set(newton_project(sub, q[free_q], iterations=8))
+        A = self.constraint_jacobian(t, q)
+        if A.shape[0]:
+            if free_v.size < A.shape[0]:
+                raise ParameterError(
+                    f"{owner}.project: {A.shape[0]} velocity-level constraints but only {free_v.size} free "
+                    "velocities to satisfy them; fix fewer velocities", "fixed", None)
+            r = self._all_velocity_constraints(t, q, qd)
+            M = self.mass_matrix(q)
+            qd = qd.at[free_v].add(metric_projection(M[np.ix_(free_v, free_v)], A[:, free_v], r))
+        return jnp.concatenate([q, qd])
+
+
+def _state_names(owner, names, n):
+    """() or 2n names for x = (q, q'): n coordinate names get '<name>_dot' velocities."""
+    if names is None:
+        return ()
+    if isinstance(names, str) or not all(isinstance(v, str) for v in names):
+        raise ParameterError(f"{owner}: state_names must be a sequence of strings, got {names!r}",
+                             "state_names", names)
+    names = tuple(names)
+    if isinstance(n, int) and len(names) == n:
+        names = names + tuple(f"{v}_dot" for v in names)
+    if not isinstance(n, int) or len(names) != 2 * n:
+        raise ParameterError(
+            f"{owner}: state_names has {len(names)} entries; give n = {n} coordinate names (velocities become "
+            f"'<name>_dot') or all 2n = {2 * n if isinstance(n, int) else '2n'} names of x = (q, q')",
+            "state_names", names)
+    if len(set(names)) != len(names):
+        raise ParameterError(f"{owner}: state_names must be distinct, got {names!r}", "state_names", names)
+    return names
+
+
+def _invariant_table(owner, arg, table):
+    """((key, fn), ...) from {name: fn(q, qd)} or {name: (fn(q, qd), unit)}; the key
+    carries the unit as 'name [unit]', which is how it appears in summary()."""
+    if table is None:
+        return ()
+    if not isinstance(table, dict):
+        raise ParameterError(
+            f"{owner}: {arg} must be a dict name -> fn(q, qd) or name -> (fn(q, qd), unit), got {table!r}",
+            arg, table)
+    out = []
+    for name, entry in table.items():
+        fn, unit = (entry if isinstance(entry, tuple) else (entry, ""))
+        if not callable(fn) or not isinstance(unit, str) or not isinstance(name, str):
+            raise ParameterError(
+                f"{owner}: {arg}[{name!r}] must be fn(q, qd) -> scalar or a pair (fn, 'unit'), got {entry!r}",
+                arg, table)
+        out.append((f"{name} [{unit}]" if unit else name, fn))
+    return tuple(out)
+
 
 class Lagrangian(ConstrainedLagrangian):
     """A ConstrainedLagrangian from plain functions (quick user-defined systems).
 
     ``Lagrangian(n=2, T=lambda q, qd: ..., V=..., velocity_constraints=...,
-    position_constraints=..., force=lambda t, q, qd, u: ..., control_dim=k)``.
+    position_constraints=..., force=lambda t, q, qd, u: ..., control_dim=k,
+    state_names=("th1", "th2"), invariants={"L": (lambda q, qd: ..., "kg m^2/s")})``.
     The functions may close over arrays (then those are constants to jit/grad)
     or be equinox Modules (then their arrays are traced parameters).
+
+    ``state_names``: n coordinate names (the velocities are then named
+    '<name>_dot') or all 2n names of x = (q, q'); ``traj["th1"]`` and
+    ``project(t, x, fixed=("th1", ...))`` use them.
+    ``invariants``: quantities conserved for every input, name -> fn(q, qd) or
+    name -> (fn(q, qd), unit); simulate() reports their values and drift like a
+    shipped scene's, under the key 'name [unit]' (so ``summary()`` shows the unit).
+    ``free_invariants``: the same for quantities conserved only without inputs.
     """
 
     n: int = eqx.field(static=True)
@@ -224,6 +342,9 @@ class Lagrangian(ConstrainedLagrangian):
     force: Callable | None = None
     n_controls: int = eqx.field(default=0, static=True)
     baumgarte: tuple[float, float] = eqx.field(default=(0.0, 0.0), static=True)
+    state_names: tuple = eqx.field(default=(), static=True)
+    user_invariants: tuple = ()
+    user_free_invariants: tuple = ()
 
     def __init__(
         self,
@@ -235,10 +356,16 @@ class Lagrangian(ConstrainedLagrangian):
         force=None,
         control_dim=0,
         baumgarte=(0.0, 0.0),
+        state_names=None,
+        invariants=None,
+        free_invariants=None,
     ):
         from .. import _validate as Vd
 
         owner = "Lagrangian"
+        self.state_names = _state_names(owner, state_names, int(n) if isinstance(n, (int, np.integer)) else n)
+        self.user_invariants = _invariant_table(owner, "invariants", invariants)
+        self.user_free_invariants = _invariant_table(owner, "free_invariants", free_invariants)
         self.n = Vd.integer("n", n, minimum=1, owner=owner, what="number of generalized coordinates")
         self.T = Vd.function("T", T, owner=owner, signature="T(q, qd) -> kinetic energy")
         self.V = Vd.function("V", V, owner=owner, signature="V(q) -> potential energy", optional=True)
@@ -273,3 +400,10 @@ class Lagrangian(ConstrainedLagrangian):
     def generalized_force(self, t, q, qd, u):
         return self.force(t, q, qd, u) if self.force is not None else jnp.zeros_like(q)
 
+    def invariants(self, x):
+        q, qd = self.split(x)
+        return {k: jnp.asarray(fn(q, qd)) for k, fn in self.user_invariants}
+
+    def free_invariants(self, x):
+        q, qd = self.split(x)
+        return {k: jnp.asarray(fn(q, qd)) for k, fn in self.user_free_invariants}

@@ -50,6 +50,13 @@ class LieLagrangian(AbstractSystem):
     Subclasses set ``config_spaces`` (a tuple of spaces, one per part of g) and
     override ``lagrangian(g, v)`` and any of ``velocity_constraints(t, g, v)``,
     ``position_constraints(t, g)``, ``generalized_force(t, g, v, u)``.
+
+    Conserved quantities: override ``invariants(y)`` (conserved for every input) or
+    ``free_invariants(y)`` (without inputs), y = (g, v), returning name -> scalar;
+    simulate() reports their values and drift as for the shipped scenes. Name them
+    ``"name [unit]"`` (as ``Lagrangian(invariants=...)`` does) and ``summary()``
+    shows the unit. The state is a pytree, so ``traj["name"]`` (flat states only)
+    does not apply: read ``traj.xs`` = (g, v) by part.
     """
 
     regularity_hints = REGULARITY_HINTS

@@ -1,0 +1,16 @@
+"""The notebooks run as tests through nbmake (``--nbmake`` in pyproject.toml's addopts):
+``make test`` executes the quick ones, ``make test-all`` all of them. A notebook listed
+in SLOW (more than ~30 s in a fresh kernel: optimal control solves that compile for a
+minute or more) is marked ``slow``."""
+
+from pathlib import Path
+
+import pytest
+
+SLOW = {"01_falling_cat.ipynb", "02_spherical_robot.ipynb", "03_your_own_system.ipynb"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        if Path(str(item.fspath)).name in SLOW:
+            item.add_marker(pytest.mark.slow)

@@ -1,0 +1,127 @@
+"""nhjax as an installed library: a wheel built from this checkout, installed into a
+fresh virtual environment, gives a working ``nhjax`` CLI that lists and runs the
+experiments (found through the ``nhjax.experiments`` entry-point group, not a
+checkout), and the simulator package imports nothing from ``controls``.
+
+The fresh venv sees the already-installed dependencies of the running
+interpreter through a .pth line (the wheel itself goes in with ``--no-deps``), so
+the test needs no network and stays quick; nhjax itself must come from the wheel,
+which the test checks.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _imports(path: Path) -> set[str]:
+    tree = ast.parse(path.read_text(), str(path))
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_simulator_imports_nothing_from_controls():
+    offenders = [str(p.relative_to(REPO)) for p in sorted((REPO / "nhjax").rglob("*.py"))
+                 if {"controls", "experiments"} & _imports(p)]
+    assert not offenders, f"nhjax must not import controls or experiments: {offenders}"
+
+
+def test_checkout_lists_every_experiment_script():
+    from nhjax.cli import experiments
+
+    exps = experiments()
+    on_disk = {p.stem for p in (REPO / "experiments").glob("*.py") if not p.name.startswith("_")}
+    assert on_disk <= set(exps)
+    assert "optimal_somersault" in exps and "__init__" not in exps
+
+
+def test_unknown_experiment_is_a_clear_error(capsys):
+    from nhjax.cli import main
+
+    assert main(["run", "no_such_experiment"]) == 2
+    err = capsys.readouterr().err
+    assert "no_such_experiment" in err and "cat_holonomy" in err
+
+
+def _clean_env():
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["MPLBACKEND"] = "Agg"
+    return env
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    """(venv bin dir, work dir): a wheel of this checkout installed into a fresh venv."""
+    tmp = tmp_path_factory.mktemp("install")
+    src = tmp / "src"
+    ignore = shutil.ignore_patterns("__pycache__", "out", "*.egg-info", "build")
+    for d in ("nhjax", "controls", "experiments"):
+        shutil.copytree(REPO / d, src / d, ignore=ignore)
+    for f in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO / f, src / f)
+    wheels = tmp / "wheels"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(wheels), str(src)],
+                   check=True, env=_clean_env(), cwd=tmp)
+    (wheel,) = wheels.glob("nhjax-*.whl")
+    venv = tmp / "venv"
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    py = venv / "bin" / "python"
+    site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                          check=True, capture_output=True, text=True).stdout.strip()
+    # the running interpreter's packages (jax, diffrax, ...), added after the venv's own
+    (Path(site) / "_shared_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", "--disable-pip-version-check", str(wheel)],
+                   check=True, env=_clean_env())
+    work = tmp / "work"
+    work.mkdir()
+    where = subprocess.run([str(py), "-c", "import nhjax, controls, experiments; "
+                            "print(nhjax.__file__); print(controls.__file__); print(experiments.__file__)"],
+                           check=True, capture_output=True, text=True, env=_clean_env(), cwd=work).stdout.split()
+    assert all(w.startswith(str(venv)) for w in where), where  # from the wheel, not this checkout
+    return venv / "bin", work
+
+
+def test_installed_cli_lists_experiments(installed):
+    bin_dir, work = installed
+    out = subprocess.run([str(bin_dir / "nhjax"), "list"], check=True, capture_output=True, text=True,
+                         env=_clean_env(), cwd=work).stdout
+    assert "experiments (nhjax run <name>):" in out
+    listed = {line.split()[0] for line in out.split("experiments (nhjax run <name>):")[1].splitlines() if line.strip()}
+    on_disk = {p.stem for p in (REPO / "experiments").glob("*.py") if not p.name.startswith("_")}
+    assert on_disk <= listed
+    assert "FallingCat" in out  # the scene registry
+
+
+@pytest.mark.slow
+def test_installed_cli_runs_an_experiment(installed):
+    """cat_holonomy from the wheel: its CSV lands in <workdir>/experiments/out and holds
+    simulated turns that match the closed form -2 pi f(theta) (the script's own check)."""
+    bin_dir, work = installed
+    res = subprocess.run([str(bin_dir / "nhjax"), "run", "cat_holonomy"], capture_output=True, text=True,
+                         env=_clean_env(), cwd=work)
+    assert res.returncode == 0, res.stderr[-3000:]
+    csv = work / "experiments" / "out" / "cat_holonomy.csv"
+    assert csv.is_file() and (work / "experiments" / "out" / "cat_holonomy.png").is_file()
+    import numpy as np
+
+    rows = np.genfromtxt(csv, delimiter=",", names=True)
+    cols = rows.dtype.names
+    sim = [c for c in cols if "sim" in c.lower()]
+    exact = [c for c in cols if "closed" in c.lower() or "exact" in c.lower()]
+    assert sim and exact, cols
+    np.testing.assert_allclose(rows[sim[0]], rows[exact[0]], rtol=0, atol=1e-6)
