@@ -70,6 +70,8 @@ def test_equals_local_run_with_statuses(client):
     # by the previous call's cleanup: "lost dependencies")
     for _ in range(3):
         _same(simulate_batch_on_client(client, SKATE, X0, 12.0, chunk_members=32, on_error="return", **OPTS), local)
+    # the same through simulate_batch(client=...)
+    _same(nhjax.simulate_batch(SKATE, X0, 12.0, client=client, on_error="return", **OPTS), local)
 
 
 def _slow_start(marks, index):

@@ -426,6 +426,7 @@ def simulate_batch(
     on_error: str = "raise",
     track_work: bool | None = None,
     diagnostics: bool = True,
+    client=None,
     **impact_options,
 ) -> BatchTrajectory:
     """Simulate a batch of trajectories; returns a ``BatchTrajectory`` whose arrays have a
@@ -453,6 +454,9 @@ def simulate_batch(
         solve failed) or "return" (nothing raises: every member's status is in
         ``traj.status`` / ``traj.reasons``, with its time in ``traj.t_final``; the other
         members' results are intact). Members with a bad initial state are not solved.
+    client : a ``dask.distributed.Client``: the batch's chunks run on its workers and
+        come back joined in member order (``nhjax.integrate.distributed.
+        simulate_batch_on_client``: a lost worker's chunks are rerun; the ``dask`` extra).
     impact_options : for systems with one-sided constraints (``unilateral_constraints``:
         bouncing balls, moving walls), which go to the lock-step impact batch
         (``nhjax.integrate.impacts.simulate_batch_impacts``, returning an
@@ -460,6 +464,15 @@ def simulate_batch(
     Other arguments as ``nhjax.simulate``.
     """
     owner = "simulate_batch"
+    if client is not None:
+        from .distributed import simulate_batch_on_client
+
+        return simulate_batch_on_client(
+            client, system, x0, t1, t0=t0, control=control, in_axes=in_axes, chunk_size=chunk_size, lanes=lanes,
+            workers=workers, progress=bool(progress), saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0,
+            max_steps=max_steps, stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
+            project=project, project_steps=project_steps, constraint_tol=constraint_tol, on_guard=on_guard,
+            on_error=on_error, track_work=track_work, diagnostics=diagnostics, **impact_options)
     if hasattr(system, "unilateral_constraints"):
         from .impacts import simulate_batch_impacts
 
