@@ -10,6 +10,7 @@ from .falling_cat import (
     ShapeLoopTorque,
 )
 from .ball_in_cone import BallInCone
+from .ball_in_cone_euler import BallInConeEuler
 from .ball_on_platter import BallOnPlatter
 from .bouncing_ball import BouncingBall
 from .falling_cat_reduced import FallingCatReduced
@@ -62,6 +63,7 @@ REGISTRY = {
 
 __all__ = [
     "BallInCone",
+    "BallInConeEuler",
     "BallOnPlatter",
     "BouncingBall",
     "FallingCat",
