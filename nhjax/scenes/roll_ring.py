@@ -85,6 +85,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
+from ..mechanics._kkt import kkt_accelerations
 from ._validate import in_range, positive, real
 from .ball_on_platter import baumgarte_gains
 
@@ -213,8 +214,6 @@ class RollRing(ConstrainedLagrangian):
     def vector_field(self, t, x, u):
         q, qd = self.split(x)
         M, rhs, A, b = self.dynamics_terms(t, q, qd, u)
-        from ..mechanics._kkt import kkt_accelerations
-
         qdd, lam = kkt_accelerations(M, rhs, A, b)
         dissipation = self.delta * (qd[2] - qd[0]) ** 2
         supplied = self.moment(t) * qd[1] + jnp.dot(A.T @ lam, qd)
