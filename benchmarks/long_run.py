@@ -167,6 +167,18 @@ def case(name):
         def err(t, x):  # t1 is a whole number of radial periods: D (hence the height) is back to D(0)
             return abs(float(jnp.hypot(x[0], x[1])) - d0)
         return b, x0, None, b.radial_period(x0), "one radial period (greatest height to greatest height)", err
+    if name == "RollRing":
+        rr = S.RollRing()
+        # the seed's drive (tilt up, hold, tilt back by t = 7.1 s), then the mechanism rings
+        # down through the damper; invariant: E + dissipated - supplied
+        period = 2 * np.pi * float(np.sqrt((rr.m_s + rr.m1 + rr.m2) / rr.gamma))
+        return rr, rr.initial_state(), None, period, \
+            "2 pi sqrt((m_s + m1 + m2) / gamma), the absorber's spring period", None
+    if name in ("ThreeCylinders", "ThreeCylindersMinimal"):
+        c = getattr(S, name)()
+        # no exact solution; the upper cylinder rolls off along e1 while its axis angle
+        # settles (2 -> 1.456 rad), the lower ones keep rolling: bounded speeds, no guard
+        return c, c.initial_state(), None, np.pi, "one turn of the upper cylinder at its initial spin (2 pi / phi'(0))", None
     if name in ("RollingDisk", "RollingDiskQuaternion"):
         d = S.RollingDisk()
         theta0, q = 0.25, 2.17080452

@@ -12,6 +12,18 @@ Reference: RKMK45 at rtol = atol = 1e-13, checked against a second method
 (Dopri8 at 1e-13 for flat states, RKMK45 at 3e-14 for group-valued ones); the
 disagreement of the two is printed as the reference's own error bar.
 
+Seed 002's scenes of issue 18 (BallInCone, RollRing, ThreeCylinders,
+ThreeCylindersMinimal; the last three are listed in ``EXTRA_CASES`` here, not in
+compile_times.py) are also solved with SciPy's ``solve_ivp`` (RK45 and DOP853, the
+same rtol = atol) on the same vector field (jitted, called from NumPy once per
+stage, no projection: SciPy integrates the index-reduced ODE as it is), against the
+same reference; its wall time is that of the whole solve_ivp call. A case may set
+``jump_ts`` (RollRing: the kinks of its drive moment), passed to simulate(); SciPy
+has no such option and steps across them.
+
+``python benchmarks/scene_work_precision.py [scene ...]`` runs the named scenes only
+(then the output files get the suffix ``_subset``).
+
 Writes experiments/out/bench/scene_work_precision.{json,csv,png}.
 """
 
@@ -40,12 +52,46 @@ from compile_times import CASES  # noqa: E402
 
 OUT = HERE.parent / "experiments" / "out" / "bench"
 TOLS = [1e-4, 1e-6, 1e-8, 1e-10, 1e-12]
+# cases of this benchmark only (compile_times.py is not ours to edit); same format as CASES
+EXTRA_CASES = {
+    "RollRing": """
+system = S.RollRing(); x0 = system.initial_state(); t1 = 10.0; jump_ts = system.kink_times()""",
+    "ThreeCylinders": """
+system = S.ThreeCylinders(); x0 = system.initial_state(); t1 = 6.0""",
+    "ThreeCylindersMinimal": """
+system = S.ThreeCylindersMinimal(); x0 = system.initial_state(); t1 = 6.0""",
+}
+ALL_CASES = {**CASES, **{k: v for k, v in EXTRA_CASES.items() if k not in CASES}}
+SCIPY_SCENES = ("BallInCone", "RollRing", "ThreeCylinders", "ThreeCylindersMinimal")
 
 
 def build(name):
     ns = dict(np=np, nhjax=nhjax, S=S, control=None)
-    exec(CASES[name], ns)  # noqa: S102  (our own registry of cases)
-    return ns["system"], ns["x0"], float(ns["t1"]), ns["control"]
+    exec(ALL_CASES[name], ns)  # noqa: S102  (our own registry of cases)
+    return ns["system"], ns["x0"], float(ns["t1"]), ns["control"], ns.get("jump_ts")
+
+
+def scipy_rows(name, system, x0, t1, ref, second, ref_err):
+    """SciPy solve_ivp (RK45, DOP853) on the system's vector field, error at t1 against ref."""
+    import time
+
+    from scipy.integrate import solve_ivp
+
+    f = jax.jit(lambda t, x: system.vector_field(t, x, None))
+    x0n = np.asarray(x0, dtype=float)
+    rhs = lambda t, x: np.asarray(f(t, x))  # noqa: E731
+    solve_ivp(rhs, (0.0, 1e-3 * t1), x0n, method="RK45", rtol=1e-3, atol=1e-3)  # compile and warm up, untimed
+    rows = []
+    for method in ("RK45", "DOP853"):
+        for tol in TOLS:
+            start = time.perf_counter()
+            sol = solve_ivp(rhs, (0.0, t1), x0n, method=method, rtol=tol, atol=tol)
+            seconds = time.perf_counter() - start
+            err = float(np.max(np.abs(sol.y[:, -1] - np.asarray(ref)))) if sol.success else float("nan")
+            rows.append(dict(scene=name, solver=f"SciPy {method}", rtol=tol, error=err,
+                             steps=int(sol.t.size - 1), seconds=seconds, reference_check=second,
+                             reference_disagreement=ref_err))
+    return rows
 
 
 def timed(fn):
@@ -53,7 +99,7 @@ def timed(fn):
 
 
 def scene_rows(name):
-    system, x0, t1, control = build(name)
+    system, x0, t1, control, jump_ts = build(name)
     flat = all(isinstance(s, nhjax.lie.Euclidean) for s in jax.tree_util.tree_leaves(
         system.spaces, is_leaf=nhjax.lie.spaces.is_space))
 
@@ -61,7 +107,7 @@ def scene_rows(name):
         @jax.jit
         def run(tol):
             tr = nhjax.simulate(system, x0, t1, control=control, rtol=tol, atol=tol, saveat=2,
-                                solver=solver, diagnostics=False, max_steps=400_000)
+                                solver=solver, diagnostics=False, max_steps=400_000, jump_ts=jump_ts)
             return ravel_pytree(tr.x_end)[0], tr.num_accepted_steps
         return run
 
@@ -82,6 +128,8 @@ def scene_rows(name):
             rows.append(dict(scene=name, solver=sname, rtol=tol, error=float(jnp.max(jnp.abs(y - ref))),
                              steps=int(steps), seconds=timed(lambda: run(tol)), reference_check=second,
                              reference_disagreement=ref_err))
+    if name in SCIPY_SCENES and control is None and flat:
+        rows += scipy_rows(name, system, x0, t1, ref, second, ref_err)
     return rows
 
 
@@ -110,12 +158,14 @@ def plot(rows, path):
     fig.savefig(path, dpi=110)
 
 
-def main():
+def main(names=None):
     OUT.mkdir(parents=True, exist_ok=True)
+    names = names or list(ALL_CASES)
+    suffix = "" if set(names) == set(ALL_CASES) else "_subset"
     load_start = os.getloadavg()
     rows = []
     print(f"{'scene':24s} {'solver':18s} " + " ".join(f"{t:>18g}" for t in TOLS))
-    for name in CASES:
+    for name in names:
         try:
             rr = scene_rows(name)
         except Exception as e:  # a scene that cannot reach a tolerance is reported, not fatal
@@ -127,17 +177,19 @@ def main():
             print(f"{name:24s} {sname:18s} " + " ".join(cells), flush=True)
         print(f"{'':24s} reference vs {rr[0]['reference_check']}: {rr[0]['reference_disagreement']:.1e}")
     load_end = os.getloadavg()
-    meta = dict(command="python benchmarks/scene_work_precision.py", platform=platform.platform(),
+    meta = dict(command=" ".join(["python benchmarks/scene_work_precision.py"] + (names if suffix else [])),
+                platform=platform.platform(),
                 cpu_count=os.cpu_count(), load_average_start=list(load_start), load_average_end=list(load_end))
-    (OUT / "scene_work_precision.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
-    with open(OUT / "scene_work_precision.csv", "w", newline="") as f:
+    (OUT / f"scene_work_precision{suffix}.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
+    with open(OUT / f"scene_work_precision{suffix}.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    plot(rows, OUT / "scene_work_precision.png")
+    plot(rows, OUT / f"scene_work_precision{suffix}.png")
     print(f"load average start {load_start[0]:.2f}, end {load_end[0]:.2f}; "
-          f"written: {OUT}/scene_work_precision.json, .csv, .png")
+          f"written: {OUT}/scene_work_precision{suffix}.json, .csv, .png")
 
 
 if __name__ == "__main__":
-    main()
+    # scene names (others, e.g. "scene_work_precision" from `nhjax bench`, are ignored)
+    main([a for a in sys.argv[1:] if a in ALL_CASES] or None)

@@ -10,12 +10,14 @@ from .falling_cat import (
     ShapeLoopTorque,
 )
 from .ball_in_cone import BallInCone
+from .ball_in_cone_euler import BallInConeEuler
 from .ball_on_platter import BallOnPlatter
 from .bouncing_ball import BouncingBall
 from .falling_cat_reduced import FallingCatReduced
 from .moving_circle import ParticleInMovingCircle
 from .nbody import NBodyCat, ThreeBodyCat
 from .planar_chain import PlanarChain, PlanarChainUnreduced
+from .roll_ring import RollRing
 from .rolling_disk import RollingDisk, RollingDiskQuaternion
 from .shell_suslov_hinge import ShellWithSuslovHinge, ShellWithSuslovHingeZeroMomentum
 from .shell_with_top import ShellWithTopLagrangian, ShellWithTopReduced
@@ -23,6 +25,7 @@ from .spherical_robot import ShellWithTop
 from .sphere_wall import RollingSphereWall
 from .skate import Skate, SkateSE2
 from .suslov_bundle import SuslovBundle
+from .three_cylinders import ThreeCylinders, ThreeCylindersMinimal
 from .two_wheeled_cart import TwoWheeledCart
 
 # name -> (class, one-line description); used by `nhjax list`.
@@ -41,6 +44,9 @@ REGISTRY = {
     "SkateSE2": (SkateSE2, "the same skate on SE(2) (Hamel equations, RKMK)"),
     "BallOnPlatter": (BallOnPlatter, "homogeneous ball on a rotating platter in R^3 x S^3, exact circular path (seed 002, 9.14-9.19)"),
     "BallInCone": (BallInCone, "homogeneous ball rolling inside a cone in R^3 x S^3, three integrals, returns to the same height (seed 002, 9.20-9.29)"),
+    "RollRing": (RollRing, "roll-ring transmission: ring body driven along a shaft (nonholonomic), shock absorber on a spring-damper, double pendulum (seed 002, 9.8-9.13)"),
+    "ThreeCylinders": (ThreeCylinders, "three cylinders in mutual rolling contact, three rigid bodies in (u, p) in R^3 x S^3, 19 constraints (seed 002, 9.33-9.36)"),
+    "ThreeCylindersMinimal": (ThreeCylindersMinimal, "the same in the seed's coordinates (x1, x2, theta, phi, psi1, psi2), four no-slip conditions (seed 002, 9.30-9.31)"),
     "RollingDisk": (RollingDisk, "sharp-edged rolling disk in minimal coordinates, tilt guard, circular motions (seed 002, 9.37-9.44)"),
     "RollingDiskQuaternion": (RollingDiskQuaternion, "the same disk as a rigid body in (u, p) in R^3 x S^3 (seed 002, 9.39-9.40)"),
     "TwoWheeledCart": (TwoWheeledCart, "two-wheeled cart on an inclined plane, closed-form motion and cusps (seed 002, 9.45-9.52)"),
@@ -57,6 +63,7 @@ REGISTRY = {
 
 __all__ = [
     "BallInCone",
+    "BallInConeEuler",
     "BallOnPlatter",
     "BouncingBall",
     "FallingCat",
@@ -70,6 +77,7 @@ __all__ = [
     "PlanarChain",
     "PlanarChainUnreduced",
     "REGISTRY",
+    "RollRing",
     "RollingSphereWall",
     "RollingDisk",
     "RollingDiskQuaternion",
@@ -83,5 +91,7 @@ __all__ = [
     "SkateSE2",
     "SuslovBundle",
     "ThreeBodyCat",
+    "ThreeCylinders",
+    "ThreeCylindersMinimal",
     "TwoWheeledCart",
 ]
