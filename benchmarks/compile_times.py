@@ -86,6 +86,15 @@ def knife_edges(t, q, qd):  # links 1-5 roll on knife edges: no sideways velocit
     return (-jnp.sin(th) * v[:, 0] + jnp.cos(th) * v[:, 1])[:5]
 system = Lagrangian(2 + N, T=T, velocity_constraints=knife_edges)
 x0 = jnp.concatenate([jnp.zeros(2 + N), jnp.array([1.0, 0.0]), jnp.zeros(N)]); t1 = 5.0""",
+    "RollRing": """
+system = S.RollRing(); x0 = system.initial_state(); t1 = 10.0""",
+    "ThreeCylinders": """
+system = S.ThreeCylinders(); x0 = system.initial_state(); t1 = 6.0""",
+    "ThreeCylindersMinimal": """
+system = S.ThreeCylindersMinimal(); x0 = system.initial_state(); t1 = 6.0""",
+}
+
+BATCH_CASES = {
     # a batch (the first simulate_batch() of a process): 256 members of unequal length
     "FallingCat simulate_batch (256 members)": """
 system = S.FallingCat(I1=1.0, lam=0.4, B=0.5); t1 = 10.0
@@ -123,7 +132,7 @@ print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s
 
 
 def _child(name: str, cache_dir: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", CHILD.format(case=CASES[name])], capture_output=True,
+    out = subprocess.run([sys.executable, "-c", CHILD.format(case={**CASES, **BATCH_CASES}[name])], capture_output=True,
                          text=True, env=dict(os.environ, NHJAX_CACHE_DIR=cache_dir))
     if out.returncode != 0:
         return dict(error=out.stderr.strip().splitlines()[-1])
@@ -170,7 +179,7 @@ def main():
     load_start = os.getloadavg()
     rows = []
     print(f"{'scene':42s} {'cold s':>7s} {'warm s':>7s} {'run ms':>9s} {'steps':>6s}")
-    for name in CASES:
+    for name in [*CASES, *BATCH_CASES]:
         r = measure(name)
         rows.append(r)
         if "error" in r:
