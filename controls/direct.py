@@ -153,7 +153,7 @@ def _merit_and_grad(tr, z, lam, rho):
 def _pieces(tr, z):
     """(cost, constraints) at z, from the one compiled program."""
     m = tr.ocp.n_constraints + (tr.segments - 1) * (tr.ocp.x0.shape[0] if tr.segments > 1 else 0)
-    return _merit_and_grad(tr, z, jnp.zeros(m), jnp.asarray(0.0))[2]
+    return _merit_and_grad(tr, z, jnp.zeros(m), jnp.asarray(0.0, float))[2]
 
 
 @compiled
