@@ -279,13 +279,15 @@ def first_answer_task(task):
     t = time.perf_counter()
     cost, viol, conv = solve()
     first = time.perf_counter() - t
+    first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
     after = []
     for _ in range(2):
         t = time.perf_counter()
         solve()
         after.append(time.perf_counter() - t)
     print("FIRST_ANSWER " + json.dumps(dict(
-        task=task, import_seconds=t_import, first_seconds=first, after_seconds=float(np.median(after)),
+        task=task, import_seconds=t_import, first_seconds=first, first_cpu_seconds=first_cpu,
+        after_seconds=float(np.median(after)),
         cost=float(cost), violation=float(viol), converged=bool(conv),
         rel_diff=(float(cost) - REFERENCE_COST) / REFERENCE_COST)), flush=True)
 
