@@ -4,19 +4,20 @@ and finds the optimum of the new numbers (minimum-energy double integrator, clos
 form); the compiled programs carry no host callbacks (so JAX's persistent cache keeps
 them); the progress line ends full when a solve converges and short when it does not."""
 
+import importlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 import controls
-import importlib
-
-nsim = importlib.import_module("nhjax.integrate.simulate")
 from controls import direct, pontryagin
 from controls.problem import TRACES, nan_errors
 from nhjax.mechanics import AbstractSystem
+
+# the module (nhjax.integrate re-exports a function of the same name)
+nsim = importlib.import_module("nhjax.integrate.simulate")
 
 
 class ScaledIntegrator(AbstractSystem):
