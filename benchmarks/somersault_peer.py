@@ -30,6 +30,20 @@ test_somersault_direct_and_pontryagin_agree, each timed after a first
 * direct: ``solve_direct`` with ``Chebyshev(10, T, 2)`` controls (single
   shooting, augmented Lagrangian + L-BFGS) from the loop's controls.
 
+Goals table (issue 16): each task's first answer in a fresh process ("cold":
+an empty temporary JAX cache directory via NHJAX_CACHE_DIR; "warm": a second
+fresh process with the same directory), the process wall time (interpreter,
+imports, problem set-up, compile and solve) and the solve call alone, and the
+after-compile time (median of 2 further solves in the warm process), with the
+cost, its relative difference from the reference and the violation. Tasks: the
+chart somersault by ``solve_direct`` (Chebyshev(10), from the loop) and by
+``solve_pontryagin`` (one solve at -pi from the loop's costates), the
+free-winding somersault (``somersault_free_winding`` in smooth coordinates,
+starts 1, 0, -1, 2, Pontryagin polish) and the torque somersault
+(``solve_direct``, Chebyshev(12), from ``torque_loop_guess``). A child is run as
+``python benchmarks/somersault_peer.py --first-answer TASK``. ``--goals``: only
+the goals table (no CasADi rows).
+
 Time ratio = seconds / seconds of CasADi's most accurate RK4 configuration
 (smallest error of the re-simulated cost), for every row, all measured in this
 one run; build time of ours = first call minus the median (the compile; the
@@ -136,7 +150,8 @@ def ours_rows():
 
     def pontryagin_chain():
         def solve(v, z):
-            return controls.solve_pontryagin(velocity_somersault_chart(cat, th0, v, T), *(z or (p0, nu)))
+            return controls.solve_pontryagin(velocity_somersault_chart(cat, th0, v, T), *(z or (p0, nu)),
+                                             progress=False)
 
         rs = controls.continuation(solve, np.linspace(loop_turn, -np.pi, 4))
         r = rs[-1]
@@ -144,7 +159,7 @@ def ours_rows():
         return r
 
     def pontryagin_single():
-        r = controls.solve_pontryagin(ocp, p0, nu)
+        r = controls.solve_pontryagin(ocp, p0, nu, progress=False)
         r.iterations_total = r.iterations
         return r
 
@@ -152,7 +167,7 @@ def ours_rows():
     guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
 
     def direct():
-        return controls.solve_direct(ocp, param, guess)
+        return controls.solve_direct(ocp, param, guess, progress=False)
 
     rows = []
     for name, method, fn in (
@@ -188,7 +203,153 @@ def ours_rows():
     return rows
 
 
+# --------------------------------------------------------------- first answer (issue 16)
+GOALS = {  # task: (goal cold [s], goal warm [s])
+    "chart_direct": (5.0, 1.0), "chart_pontryagin": (5.0, 1.0), "free_winding": (5.0, 1.0),
+    "torque_direct": (15.0, None),
+}
+TASK_TEXT = {
+    "chart_direct": "chart somersault, solve_direct Chebyshev(10), loop start",
+    "chart_pontryagin": "chart somersault, solve_pontryagin at -pi from the loop's costates",
+    "free_winding": "free-winding somersault (4 starts + Pontryagin polish)",
+    "torque_direct": "torque somersault, solve_direct Chebyshev(12), loop torques",
+}
+
+
+def first_answer_task(task):
+    """Child process: build and solve ``task`` once (the first answer), then twice more
+    (after compile); print one JSON line."""
+    t_start = time.perf_counter()
+    import jax.numpy as jnp
+
+    import controls
+    from controls.tasks import (
+        fixed_theta_costates,
+        somersault_free_winding,
+        torque_loop_guess,
+        torque_somersault,
+        velocity_somersault_chart,
+    )
+    from nhjax.scenes import FallingCat, FallingCatKinematic
+    from nhjax.scenes.falling_cat import FallingCatSmooth
+
+    t_import = time.perf_counter() - t_start
+    cat, th0, T = FallingCatKinematic(), 0.6, 2.0
+
+    def solve():
+        if task == "chart_direct":
+            ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+            param = controls.Chebyshev(10, T, 2)
+            r = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])),
+                                      progress=False)
+            return r.cost, r.violation, r.converged, REFERENCE_COST
+        if task == "chart_pontryagin":
+            ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+            r = controls.solve_pontryagin(ocp, *fixed_theta_costates(cat, th0, T), progress=False)
+            return r.cost, r.violation, r.converged, REFERENCE_COST
+        if task == "free_winding":
+            r = somersault_free_winding(FallingCatSmooth(cat.I1, cat.lam, cat.B), th0, -np.pi, T, progress=False)
+            return r.indirect.cost, r.indirect.violation, bool(r.indirect.converged), REFERENCE_COST
+        if task == "torque_direct":
+            tcat = FallingCat.from_dimensions(1.0, 1.0, 0.25)
+            param = controls.Chebyshev(12, T, 2)
+            ocp = torque_somersault(tcat, th0, -np.pi, T)
+            r = controls.solve_direct(ocp, param, torque_loop_guess(tcat, param, th0, T), progress=False)
+            return r.cost, r.violation, r.converged, None
+        raise SystemExit(f"unknown task {task}")
+
+    t = time.perf_counter()
+    cost, viol, conv, ref = solve()
+    first = time.perf_counter() - t
+    first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
+    after = []
+    for _ in range(2):
+        t = time.perf_counter()
+        solve()
+        after.append(time.perf_counter() - t)
+    print("FIRST_ANSWER " + json.dumps(dict(
+        task=task, import_seconds=t_import, first_seconds=first, first_cpu_seconds=first_cpu,
+        after_seconds=float(np.median(after)),
+        cost=float(cost), violation=float(viol), converged=bool(conv),
+        rel_diff=None if ref is None else (float(cost) - ref) / ref)), flush=True)
+
+
+def run_first_answer(script, task, cache_dir, timeout=1800):
+    """``python script --first-answer task`` in a fresh process with NHJAX_CACHE_DIR=cache_dir:
+    the child's JSON with the process wall time added (None fields if it failed)."""
+    import subprocess
+
+    import resource
+
+    env = dict(os.environ, NHJAX_CACHE_DIR=cache_dir)
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    p = subprocess.run([sys.executable, str(script), "--first-answer", task], env=env, capture_output=True,
+                       text=True, timeout=timeout)
+    wall = time.perf_counter() - t
+    ru2 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (ru2.ru_utime - ru.ru_utime) + (ru2.ru_stime - ru.ru_stime)
+    for line in p.stdout.splitlines():
+        if line.startswith("FIRST_ANSWER "):
+            out = json.loads(line[len("FIRST_ANSWER "):])
+            out["process_seconds"] = wall
+            out["process_cpu_seconds"] = cpu
+            return out
+    tail = (p.stderr or p.stdout).strip().splitlines()[-3:]
+    return dict(task=task, process_seconds=wall, failed=" | ".join(tail))
+
+
+def goals_rows(script, tasks, goals, texts):
+    """Cold (empty cache) and warm (same cache, new process) first answers per task."""
+    import shutil
+    import tempfile
+
+    rows = []
+    for task in tasks:
+        cache = tempfile.mkdtemp(prefix=f"nhjax-goals-{task}-")
+        try:
+            load = os.getloadavg()[0]
+            cold = run_first_answer(script, task, cache)
+            warm = run_first_answer(script, task, cache)
+        finally:
+            shutil.rmtree(cache, ignore_errors=True)
+        row = dict(task=task, what=texts[task], goal_cold=goals[task][0], goal_warm=goals[task][1], load=load,
+                   cold=cold, warm=warm)
+        rows.append(row)
+        print_goal_row(row)
+    return rows
+
+
+def print_goal_header(peer_label):
+    print(f"{'task':64s} {'cold: process/solve/CPU [s]':>31s} {'warm: process/solve/CPU [s]':>31s} "
+          f"{'after compile':>14s} {'cost':>15s} {'rel diff':>9s} {'viol':>7s} {'load':>5s}   {peer_label}")
+
+
+def print_goal_row(r, peer=""):
+    c, w = r["cold"], r["warm"]
+    for x in (c, w):  # CPU up to the first answer when the child reports it, else the whole process
+        x.setdefault("first_cpu_seconds", x.get("process_cpu_seconds"))
+    if "failed" in c or "failed" in w:
+        print(f"{r['what'][:64]:64s} failed: {c.get('failed') or w.get('failed')}", flush=True)
+        return
+    gc = f"<= {r['goal_cold']:g}" if r["goal_cold"] else ""
+    gw = f"<= {r['goal_warm']:g}" if r["goal_warm"] else ""
+    rd = f"{w['rel_diff']:+9.1e}" if w.get("rel_diff") is not None else f"{'':>9s}"
+    print(f"{r['what'][:64]:64s} {c['process_seconds']:6.1f} /{c['first_seconds']:5.1f} /{c['first_cpu_seconds']:5.1f}"
+          f" {gc:>8s} {w['process_seconds']:6.1f} /{w['first_seconds']:5.1f} /{w['first_cpu_seconds']:5.1f} {gw:>8s}"
+          f" {w['after_seconds']:12.3f} s "
+          f"{w['cost']:15.11f} {rd} {w['violation']:7.0e} {r['load']:5.2f}   {peer}", flush=True)
+
+
 def main():
+    if "--first-answer" in sys.argv:
+        first_answer_task(sys.argv[sys.argv.index("--first-answer") + 1])
+        return
+    if "--goals" in sys.argv:
+        print("First answer (issue 16 goals), cold = fresh process + empty cache dir, warm = second process:")
+        print_goal_header("")
+        goals_rows(Path(__file__).resolve(), list(GOALS), GOALS, TASK_TEXT)
+        return
     load_start = os.getloadavg()
     print(f"load average at start (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}")
     try:
@@ -216,6 +377,10 @@ def main():
     peer = casadi_rows(cs)
     print("controls (median of 3 calls after a first, compiling call):", flush=True)
     ours = ours_rows()
+    print("first answer (issue 16 goals), cold = fresh process + empty cache dir, warm = second process:",
+          flush=True)
+    print_goal_header("")
+    goals = goals_rows(Path(__file__).resolve(), list(GOALS), GOALS, TASK_TEXT)
 
     # ratios: ours against the most accurate RK4 configuration of the peer, and against each
     rk4 = [r for r in peer if r["integrator"] == "rk4"]
@@ -245,7 +410,8 @@ def main():
         command="python benchmarks/somersault_peer.py", total_seconds=time.perf_counter() - start,
         load_average_start=list(load_start), load_average_end=list(load_end),
     )
-    (OUT / "somersault_peer.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1, default=float))
+    (OUT / "somersault_peer.json").write_text(json.dumps(dict(meta=meta, rows=rows, goals=goals), indent=1,
+                                                         default=float))
 
     print("\n" + "=" * 150)
     print(f"Somersault in Iwai's chart, reference cost {REFERENCE_COST}; time ratio = seconds / seconds of "
@@ -262,6 +428,12 @@ def main():
     for r in rows:
         if r.get("note"):
             print(f"note: {r['solver']} ({r['method'][:50]}...): {r['note']}")
+    ipopt = f"CasADi+IPOPT '{best['method'][:40]}': build {best['build_seconds']:.2f} s + solve {best['seconds']:.3f} s"
+    print("\nGoals (issue 16): first answer cold <= 5 s, warm <= 1 s (torque: cold <= 15 s); after compile: "
+          "direct no slower than IPOPT, Pontryagin faster. " + ipopt)
+    print_goal_header("")
+    for g in goals:
+        print_goal_row(g)
     print(f"\nload average (1, 5, 15 min): start {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}, "
           f"end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}")
     print(f"total {meta['total_seconds']:.0f} s; written: {OUT}/somersault_peer.csv, .json")

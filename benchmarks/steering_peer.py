@@ -47,7 +47,14 @@ the median (mostly the compile). Writes
 experiments/out/bench/steering_peer.{csv,json}. Skips with a message if casadi
 is not installed (``pip install 'casadi>=3.6,<4'``, extra ``peers``).
 
-Usage: python benchmarks/steering_peer.py [--quick]   (--quick: N = 30 only,
+Goals table (issue 16): the first answer of ``solve_direct_newton`` with
+Chebyshev(6) controls from ``linear_guess`` in a fresh process, cold (empty
+temporary JAX cache via NHJAX_CACHE_DIR) and warm (a second process with the same
+cache), with the after-compile time (median of 2 further solves), cost and
+violation (children: ``python benchmarks/steering_peer.py --first-answer TASK``;
+the machinery is somersault_peer's). ``--goals``: only that table.
+
+Usage: python benchmarks/steering_peer.py [--quick | --goals]   (--quick: N = 30 only,
 no Pontryagin; for trying the script, not for the README)
 """
 
@@ -209,7 +216,7 @@ def ours_rows(pontryagin=True):
         guess_s = time.perf_counter() - t
         row, r = timed("controls.solve_direct_newton",
                        f"Chebyshev({n}) x 3, single shooting (RKMK), feasible-path Newton, linear start",
-                       lambda param=param, guess=guess: solve_direct_newton(ocp, param, guess))
+                       lambda param=param, guess=guess: solve_direct_newton(ocp, param, guess, progress=False))
         if row is None:
             continue
         results[n] = r
@@ -229,7 +236,7 @@ def ours_rows(pontryagin=True):
 
         def pontryagin_solve():
             return controls.solve_pontryagin(red, pmp["ps"][-1], pmp["multipliers"], solver="lm", rtol=1e-11,
-                                             atol=1e-11, tol=1e-10, max_steps=60)
+                                             atol=1e-11, tol=1e-10, max_steps=60, progress=False)
 
         row, r = timed("controls.solve_pontryagin",
                        "reduced state, single shooting, LM from the Chebyshev(12) optimum's costates",
@@ -248,8 +255,61 @@ def ours_rows(pontryagin=True):
     return rows
 
 
+GOALS = {"steer_newton6": (30.0, 5.0)}
+TASK_TEXT = {"steer_newton6": "steering, solve_direct_newton Chebyshev(6), linear start"}
+
+
+def first_answer_task(task):
+    """Child process: the steering task's first answer, then two more solves (after compile)."""
+    t_start = time.perf_counter()
+    import controls
+    from controls.tasks import linear_guess, solve_direct_newton, sphere_steering
+    from nhjax.scenes import ShellWithTop
+
+    t_import = time.perf_counter() - t_start
+    if task != "steer_newton6":
+        raise SystemExit(f"unknown task {task}")
+
+    def solve():
+        ocp = sphere_steering(ShellWithTop(), TARGET, T)
+        param = controls.Chebyshev(6, T, 3)
+        r = solve_direct_newton(ocp, param, linear_guess(ocp, param), progress=False)
+        return r.cost, r.violation, r.converged
+
+    t = time.perf_counter()
+    cost, viol, conv = solve()
+    first = time.perf_counter() - t
+    first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
+    after = []
+    for _ in range(2):
+        t = time.perf_counter()
+        solve()
+        after.append(time.perf_counter() - t)
+    print("FIRST_ANSWER " + json.dumps(dict(
+        task=task, import_seconds=t_import, first_seconds=first, first_cpu_seconds=first_cpu,
+        after_seconds=float(np.median(after)),
+        cost=float(cost), violation=float(viol), converged=bool(conv),
+        rel_diff=(float(cost) - REFERENCE_COST) / REFERENCE_COST)), flush=True)
+
+
+def goals(peer_text=""):
+    sys.path.insert(0, str(HERE))
+    from somersault_peer import goals_rows, print_goal_header
+
+    print("first answer (issue 16 goals: cold <= 30 s, warm <= 5 s), cold = fresh process + empty cache dir, "
+          "warm = second process; rel diff against the continuous optimum:", flush=True)
+    print_goal_header(peer_text)
+    return goals_rows(Path(__file__).resolve(), list(GOALS), GOALS, TASK_TEXT)
+
+
 def main(argv=None):
     argv = sys.argv[1:] if argv is None else argv
+    if "--first-answer" in argv:
+        first_answer_task(argv[argv.index("--first-answer") + 1])
+        return
+    if "--goals" in argv:
+        goals()
+        return
     quick = "--quick" in argv
     load_start = os.getloadavg()
     print(f"load average at start (1, 5, 15 min): {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}")
@@ -276,6 +336,7 @@ def main(argv=None):
     peer = casadi_rows(cs, QUICK_CONFIGS if quick else CONFIGS, plane, u_of_t)
     print("controls (median of 3 calls after a first, compiling call):", flush=True)
     ours = ours_rows(pontryagin=not quick)
+    goal_rows = [] if quick else goals()
 
     pmp_row = next((r for r in ours if r["solver"] == "controls.solve_pontryagin" and "cost" in r
                     and r["status"] == "converged"), None)
@@ -313,7 +374,8 @@ def main(argv=None):
         total_seconds=time.perf_counter() - start, load_average_start=list(load_start),
         load_average_end=list(load_end),
     )
-    (OUT / f"{name}.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1, default=float))
+    (OUT / f"{name}.json").write_text(json.dumps(dict(meta=meta, rows=rows, goals=goal_rows), indent=1,
+                                                 default=float))
 
     print("\n" + "=" * 168)
     print(f"Spherical-robot steering, reference cost {reference:.12g} ({reference_from}); time ratio = seconds / "
@@ -333,6 +395,15 @@ def main(argv=None):
     for r in rows:
         if r.get("note"):
             print(f"note: {r['solver']} ({r['method'][:50]}...): {r['note']}")
+    if goal_rows:
+        sys.path.insert(0, str(HERE))
+        from somersault_peer import print_goal_header, print_goal_row
+
+        print(f"\nGoals (issue 16): steering first answer cold <= 30 s, warm <= 5 s; direct after compile <= 2x "
+              f"IPOPT's solve ({best['seconds']:.2f} s here: <= {2 * best['seconds']:.2f} s), Pontryagin <= IPOPT")
+        print_goal_header("")
+        for g in goal_rows:
+            print_goal_row(g)
     print(f"\nload average (1, 5, 15 min): start {load_start[0]:.2f} {load_start[1]:.2f} {load_start[2]:.2f}, "
           f"end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}")
     print(f"total {meta['total_seconds']:.0f} s; written: {OUT}/{name}.csv, .json")

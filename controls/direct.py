@@ -22,7 +22,9 @@ the constraint violation below ``ctol`` and the relative cost change below
 
 Everything compiled here is a module-level function of the problem's pytree,
 so solving the same problem again with other numbers (a new target, a new
-guess, the next continuation step) reuses the compiled code.
+guess, a new horizon T, new weights held in cost modules, the next continuation
+step) reuses the compiled code: one program for the merit, its gradient and the
+(cost, constraints) beside it, and one for the L-BFGS direction.
 """
 
 from __future__ import annotations
@@ -41,8 +43,10 @@ import nhjax
 from .problem import (
     OCP,
     CostAugmented,
+    Progress,
     ProblemError,
     _OnState,
+    compiled,
     check_guess,
     check_ocp,
     check_parametrization,
@@ -55,6 +59,31 @@ __all__ = ["DirectResult", "solve_direct"]
 
 @dataclasses.dataclass
 class DirectResult:
+    """Outcome of ``solve_direct`` (and ``solve_direct_newton``).
+
+    params : (P,) the optimal control parameters of the parametrization.
+    control : ``param.signal(params)``, callable as u(t, x) [the system's input units].
+    cost : Phi(x(T)) + int_0^T L dt at ``params``, simulated at the solve's rtol/atol
+        [the cost's units].
+    violation : max |c| over the terminal constraints psi(x(T)) (and, for multiple
+        shooting, the continuity defects of the segments) [the constraints' units].
+    multipliers : (m,) the constraint multipliers lam of the augmented Lagrangian
+        (dJ + lam . dc = 0 at a solution; for multiple shooting the first m belong to
+        psi).
+    iterations : inner (L-BFGS/optax) steps taken in all (Newton iterations for
+        ``solve_direct_newton``).
+    converged : True when the violation is below ``ctol`` and the cost changed by less
+        than ``ftol`` (relative) over the last outer iteration (``solve_direct``), or the
+        violation is below ``ctol`` and the relative stationarity below ``gtol``
+        (``solve_direct_newton``). False: see ``message``.
+    message : why the solve stopped.
+    history : per-step records (merit, grad_norm, outer; per outer iteration cost and
+        violation).
+    seconds : wall time of the call (compilation included on a first call) [s].
+    node_states : (S - 1, n) the states at the interior segment starts (multiple
+        shooting), else None.
+    """
+
     params: jax.Array
     control: object
     cost: float
@@ -108,22 +137,26 @@ class _Transcription(eqx.Module):
 
     def merit(self, z, lam, rho):
         J, c = self.pieces(z)
-        return J + lam @ c + 0.5 * rho * c @ c
+        return J + lam @ c + 0.5 * rho * c @ c, (J, c)
 
 
-@eqx.filter_jit
-def _pieces(tr, z):
-    return tr.pieces(z)
-
-
-@eqx.filter_jit
+@compiled
 def _merit_and_grad(tr, z, lam, rho):
-    """The augmented-Lagrangian merit and its gradient: the one compiled reverse pass
-    (lam and rho are arrays, so new multipliers do not recompile)."""
-    return jax.value_and_grad(tr.merit)(z, lam, rho)
+    """The augmented-Lagrangian merit, its gradient and the (cost, constraints) it is
+    made of: the one compiled reverse pass of a solve (lam and rho are arrays, so new
+    multipliers do not recompile; the pieces come with it, so no second program is
+    compiled for them)."""
+    (value, pieces), grad = jax.value_and_grad(tr.merit, has_aux=True)(z, lam, rho)
+    return value, grad, pieces
 
 
-@eqx.filter_jit
+def _pieces(tr, z):
+    """(cost, constraints) at z, from the one compiled program."""
+    m = tr.ocp.n_constraints + (tr.segments - 1) * (tr.ocp.x0.shape[0] if tr.segments > 1 else 0)
+    return _merit_and_grad(tr, z, jnp.zeros(m), jnp.asarray(0.0, float))[2]
+
+
+@compiled
 def _direction(opt, grad, state, z):
     return opt.update(grad, state, z)
 
@@ -132,7 +165,7 @@ _LBFGS = optax.scale_by_lbfgs()
 _ADAM = optax.adam(1e-2)
 
 
-def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, history, outer):
+def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, history, outer, bar=None):
     """L-BFGS (optax's two-loop direction) with a projected backtracking Armijo search.
 
     The line search runs in Python on the compiled merit-and-gradient, so only one
@@ -151,7 +184,7 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
         eta, accepted = 1.0, False
         for _ in range(40):
             z_new = jnp.clip(z - eta * d, lo, hi)
-            v_new, g_new = _merit_and_grad(tr, z_new, lam, rho)
+            v_new, g_new, _ = _merit_and_grad(tr, z_new, lam, rho)
             v_new = float(v_new)
             if np.isfinite(v_new) and v_new <= value - 1e-4 * float(grad @ (z - z_new)):
                 accepted = True
@@ -166,19 +199,21 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
         history["merit"].append(value)
         history["grad_norm"].append(gnorm)
         history["outer"].append(outer)
+        if bar is not None:
+            bar.inner(value, gnorm, eta)
         if gnorm < gtol or abs(prev - value) <= 1e-2 * ftol * max(1.0, abs(value)):
             break
     return z
 
 
-@eqx.filter_jit
+@compiled
 def _first_order_step(tr, opt, z, state, lam, rho, lo, hi):
-    value, grad = jax.value_and_grad(tr.merit)(z, lam, rho)
+    (value, _), grad = jax.value_and_grad(tr.merit, has_aux=True)(z, lam, rho)
     updates, state = opt.update(grad, state, z)
     return jnp.clip(optax.apply_updates(z, updates), lo, hi), state, value, jnp.linalg.norm(grad)
 
 
-def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, history, outer):
+def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, history, outer, bar=None):
     state, prev = opt.init(z), np.inf
     for _ in range(max_inner):
         z, state, val, gnorm = _first_order_step(tr, opt, z, state, lam, rho, lo, hi)
@@ -186,6 +221,8 @@ def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, hist
         history["merit"].append(val)
         history["grad_norm"].append(gnorm)
         history["outer"].append(outer)
+        if bar is not None:
+            bar.inner(val, gnorm, None)
         if gnorm < gtol or abs(prev - val) <= 1e-2 * ftol * max(1.0, abs(val)):
             break
         prev = val
@@ -208,7 +245,7 @@ def solve_direct(
     max_outer: int = 30,
     max_inner: int = 300,
     rho: float = 10.0,
-    progress: bool = False,
+    progress: bool = True,
 ) -> DirectResult:
     """Solve ``ocp`` over the parameters of ``param`` (a controls.parametrize object).
 
@@ -216,6 +253,16 @@ def solve_direct(
         node states start on the simulated guess.
     optimizer : "lbfgs", "adam", or an optax transformation (reuse one object across
         calls: a new object compiles anew).
+    rtol, atol : tolerances of the simulations; ctol : constraint violation and ftol :
+        relative cost change over an outer iteration, both needed to converge; gtol :
+        gradient norm that ends an inner solve; rho : initial penalty.
+    progress : a progress line (tqdm.auto) over the outer iterations with the inner
+        step, merit, gradient norm, cost and violation; False: none; a string: the
+        line's label.
+
+    The problem's numbers (x0, T, targets and weights held in modules, the guess,
+    the tolerances) are arguments of the compiled programs: a second solve of the
+    same structure with other values compiles nothing. Returns a ``DirectResult``.
     """
     owner = "solve_direct"
     check_ocp(ocp, owner)
@@ -262,40 +309,37 @@ def solve_direct(
         opt = optimizer
 
     history = {"outer": [], "cost": [], "violation": [], "merit": [], "grad_norm": []}
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=max_outer, desc="direct (augmented Lagrangian)")
+    bar = Progress(progress, max_outer, "direct (augmented Lagrangian)")
     J_prev, viol_prev, converged, msg = np.inf, np.inf, False, "max_outer reached"
     J, viol = float(J0), float(jnp.max(jnp.abs(c0))) if m else 0.0
-    for outer in range(1, max_outer + 1):
-        rho_a = jnp.asarray(rho, float)  # arrays: new values do not recompile
-        if opt is None:
-            value, grad = _merit_and_grad(tr, z, lam, rho_a)
-            z = _lbfgs_inner(tr, z, lam, rho_a, lo, hi, float(value), grad, max_inner, ftol, gtol,
-                             history, outer)
-        else:
-            z = _first_order_inner(tr, opt, z, lam, rho_a, lo, hi, max_inner, ftol, gtol, history, outer)
-        Jc, c = _pieces(tr, z)
-        J, viol = float(Jc), float(jnp.max(jnp.abs(c))) if m else 0.0
-        history["cost"].append(J)
-        history["violation"].append(viol)
-        if bar is not None:
-            bar.update(1)
-            bar.set_postfix(cost=f"{J:.6g}", violation=f"{viol:.1e}")
-        if not np.isfinite(J):
-            raise ProblemError("the cost became non-finite during the optimization")
-        if viol < ctol and abs(J - J_prev) <= ftol * max(1.0, abs(J)):
-            converged, msg = True, "converged: constraints and cost change within tolerance"
-            break
-        if m:
-            lam = lam + rho * c
-            if viol > 0.25 * viol_prev:
-                rho *= 10.0
-        J_prev, viol_prev = J, viol
-    if bar is not None:
-        bar.close()
+    try:
+        for outer in range(1, max_outer + 1):
+            rho_a = jnp.asarray(rho, float)  # arrays: new values do not recompile
+            if opt is None:
+                value, grad, _ = _merit_and_grad(tr, z, lam, rho_a)
+                z = _lbfgs_inner(tr, z, lam, rho_a, lo, hi, float(value), grad, max_inner, ftol, gtol,
+                                 history, outer, bar)
+            else:
+                z = _first_order_inner(tr, opt, z, lam, rho_a, lo, hi, max_inner, ftol, gtol, history, outer,
+                                       bar)
+            Jc, c = _pieces(tr, z)
+            J, viol = float(Jc), float(jnp.max(jnp.abs(c))) if m else 0.0
+            history["cost"].append(J)
+            history["violation"].append(viol)
+            bar.update(outer=outer, steps=len(history["merit"]), cost=J, violation=f"{viol:.1e}",
+                       rho=f"{rho:.0e}")
+            if not np.isfinite(J):
+                raise ProblemError("the cost became non-finite during the optimization")
+            if viol < ctol and abs(J - J_prev) <= ftol * max(1.0, abs(J)):
+                converged, msg = True, "converged: constraints and cost change within tolerance"
+                break
+            if m:
+                lam = lam + rho * c
+                if viol > 0.25 * viol_prev:
+                    rho *= 10.0
+            J_prev, viol_prev = J, viol
+    finally:
+        bar.finish(converged)
     if not converged and m and min(history["violation"]) > 1e3 * ctol:
         msg = (
             "the terminal constraints could not be met (violation stays at "

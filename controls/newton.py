@@ -36,7 +36,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from .direct import DirectResult
-from .problem import OCP, ProblemError, check_guess, check_ocp, check_parametrization, check_tolerances, rollout
+from .problem import (
+    OCP,
+    Progress,
+    ProblemError,
+    check_guess,
+    check_ocp,
+    check_parametrization,
+    check_tolerances,
+    compiled,
+    rollout,
+)
 
 __all__ = ["solve_direct_newton"]
 
@@ -55,7 +65,7 @@ class _Shooting(eqx.Module):
         return jnp.concatenate([J[None], psi])
 
 
-@eqx.filter_jit
+@compiled
 def _values_jit(sh, z):
     return sh.values(z)
 
@@ -63,34 +73,37 @@ def _values_jit(sh, z):
 def _values(sh, z):
     """(J, psi) at z, or inf where the simulation fails (a wild trial step)."""
     try:
-        return np.asarray(_values_jit(sh, z))
+        y = np.asarray(_values_jit(sh, z))
     except eqx.EquinoxRuntimeError:
         return np.full(sh.ocp.n_constraints + 1, np.inf)
+    # the compiled programs trace equinox's runtime errors as NaN (no host callbacks)
+    return y if np.all(np.isfinite(y)) else np.full(y.shape, np.inf)
 
 
-@eqx.filter_jit
+@compiled
 def _values_and_jacobian(sh, z):
     """(J, psi) and their Jacobian: one forward solve, 1 + m reverse passes (vmapped)."""
     y, vjp = jax.vjp(sh.values, z)
     return y, jax.vmap(vjp)(jnp.eye(y.shape[0], dtype=y.dtype))[0]
 
 
-@eqx.filter_jit
+@compiled
 def _lagrangian_gradients(sh, Z, w):
     """Gradients of w . (J, psi) at each row of Z (one reverse pass per row, vmapped)."""
     return jax.vmap(lambda z: jax.vjp(sh.values, z)[1](w)[0])(Z)
 
 
-@eqx.filter_jit
+@compiled
 def _control_cost_hessian(ocp, param, z):
     """Hessian of int L(t, x0, u(t; z)) dt by composite Gauss-Legendre quadrature: the
-    exact Hessian of the cost when L depends on u only (int |u|^2 here)."""
+    exact Hessian of the cost when L depends on u only (int |u|^2 here). The nodes
+    scale with the horizon (t = t0 + T s), so a new T does not recompile."""
     xg, wg = np.polynomial.legendre.leggauss(5)
     m = 4 * max(param.n, 8)
-    edges = np.linspace(param.t0, param.t0 + param.T, m + 1)
-    h = np.diff(edges)[:, None]
-    ts = jnp.asarray((edges[:-1, None] + 0.5 * h * (xg + 1.0)).reshape(-1))
-    ws = jnp.asarray((0.5 * h * wg).reshape(-1))
+    s = np.linspace(0.0, 1.0, m + 1)
+    hs = np.diff(s)[:, None]
+    ts = param.t0 + param.T * jnp.asarray((s[:-1, None] + 0.5 * hs * (xg + 1.0)).reshape(-1))
+    ws = param.T * jnp.asarray((0.5 * hs * wg).reshape(-1))
 
     def quad(p):
         sig = param.signal(p)
@@ -135,7 +148,7 @@ def _project(sh, z, y, D, Qi, tol, max_iter=10):
 
 
 def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=1e-10, gtol=1e-7,
-                        max_iter=60, fd_step=1e-5, verbose=False) -> DirectResult:
+                        max_iter=60, fd_step=1e-5, verbose=False, progress=True) -> DirectResult:
     """The direct single-shooting method, with a feasible-path Newton solver
     (gradient-restoration, Miele's SGRA with second-order tangent steps): an
     alternative to ``controls.solve_direct`` for problems whose constraints are
@@ -157,7 +170,8 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     param : a parametrization with P > m parameters; guess : (P,) start.
     rtol, atol : tolerances of the simulations; ctol, gtol : stopping tolerances
         (violation, relative stationarity); fd_step : difference step of the
-        Hessian; verbose : print one line per iteration.
+        Hessian; verbose : print one line per iteration; progress : a progress line
+        (tqdm.auto) with the iteration, cost, violation, stationarity and step (False: none).
 
     Each iteration, from a feasible z (psi(z) = 0 to ``ctol``):
     * multipliers lam = argmin |dJ + A^T lam| (A = dpsi/dz, 1 + m reverse passes);
@@ -203,49 +217,56 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
         for k, v in (("cost", float(y[0])), ("violation", float(np.abs(y[1:]).max())), ("stationarity", stat),
                      ("step", alpha), ("seconds", time.perf_counter() - t_start)):
             history[k].append(v)
+        bar.update(iteration=len(history["cost"]), cost=float(y[0]), violation=f"{history['violation'][-1]:.1e}",
+                   stationarity=f"{stat:.1e}", step=f"{alpha:.3g}")
         if verbose:
             print(f"  {len(history['cost']):3d}: cost {y[0]:.13g}  violation {history['violation'][-1]:.2e}  "
                   f"stationarity {stat:.2e}  step {alpha:.3g}  ({history['seconds'][-1]:.1f} s)", flush=True)
 
-    z, y, D, ok = _project(sh, z, y, D, Qi, ctol, max_iter=30)
-    if not ok:
-        raise ProblemError(
-            "the terminal constraints could not be met from this guess (Gauss-Newton restoration "
-            f"stalled at violation {np.abs(y[1:]).max():.2e}): the target may be unreachable in time T "
-            "with this parametrization, or the guess too far")
-    converged, msg, it, alpha = False, "max_iter reached", 0, 0.0
-    for it in range(1, max_iter + 1):
-        g, A = D[0], D[1:]
-        lam = -np.linalg.lstsq(A.T, g, rcond=None)[0]
-        stat = float(np.abs(g + A.T @ lam).max() / max(np.abs(g).max(), 1e-300))
-        record(stat, alpha)
-        if stat < gtol and np.abs(y[1:]).max() < ctol:
-            converged, msg = True, "converged: constraints and stationarity within tolerance"
-            break
-        H = _fd_hessian(sh, z, np.concatenate([[1.0], lam]), fd_step)
-        _, S, Vt = np.linalg.svd(A)
-        Z = Vt[np.sum(S > 1e-12 * S[0]):].T
-        ev, V = np.linalg.eigh(Z.T @ H @ Z)
-        gr = Z.T @ (g + A.T @ lam)
-        d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
-        slope = (g + A.T @ lam) @ d
-        alpha, accepted = 1.0, False
-        for _ in range(20):
-            z_t = z + alpha * jnp.asarray(d)
-            y_t = _values(sh, z_t)
-            if np.all(np.isfinite(y_t)):
-                _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
-                z_t, y_t, D_t, ok = _project(sh, z_t, y_t, D_t, Qi, ctol)
-                if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
-                    accepted = True
-                    break
-            alpha *= 0.5
-        if not accepted:
-            msg = "line search failed (cost not decreasing along the restored step)"
-            if stat < 1e2 * gtol:
-                msg += f"; stationarity {stat:.1e} is near the tolerance, at the noise of the integration"
-            break
-        z, y, D = z_t, y_t, D_t
+    bar = Progress(progress, max_iter, "direct (feasible-path Newton)")
+    converged = False
+    try:
+        z, y, D, ok = _project(sh, z, y, D, Qi, ctol, max_iter=30)
+        if not ok:
+            raise ProblemError(
+                "the terminal constraints could not be met from this guess (Gauss-Newton restoration "
+                f"stalled at violation {np.abs(y[1:]).max():.2e}): the target may be unreachable in time T "
+                "with this parametrization, or the guess too far")
+        converged, msg, it, alpha = False, "max_iter reached", 0, 0.0
+        for it in range(1, max_iter + 1):
+            g, A = D[0], D[1:]
+            lam = -np.linalg.lstsq(A.T, g, rcond=None)[0]
+            stat = float(np.abs(g + A.T @ lam).max() / max(np.abs(g).max(), 1e-300))
+            record(stat, alpha)
+            if stat < gtol and np.abs(y[1:]).max() < ctol:
+                converged, msg = True, "converged: constraints and stationarity within tolerance"
+                break
+            H = _fd_hessian(sh, z, np.concatenate([[1.0], lam]), fd_step)
+            _, S, Vt = np.linalg.svd(A)
+            Z = Vt[np.sum(S > 1e-12 * S[0]):].T
+            ev, V = np.linalg.eigh(Z.T @ H @ Z)
+            gr = Z.T @ (g + A.T @ lam)
+            d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
+            slope = (g + A.T @ lam) @ d
+            alpha, accepted = 1.0, False
+            for _ in range(20):
+                z_t = z + alpha * jnp.asarray(d)
+                y_t = _values(sh, z_t)
+                if np.all(np.isfinite(y_t)):
+                    _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
+                    z_t, y_t, D_t, ok = _project(sh, z_t, y_t, D_t, Qi, ctol)
+                    if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
+                        accepted = True
+                        break
+                alpha *= 0.5
+            if not accepted:
+                msg = "line search failed (cost not decreasing along the restored step)"
+                if stat < 1e2 * gtol:
+                    msg += f"; stationarity {stat:.1e} is near the tolerance, at the noise of the integration"
+                break
+            z, y, D = z_t, y_t, D_t
+    finally:
+        bar.finish(converged)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,

@@ -15,6 +15,10 @@ fits its parameters to a given function of time (for initial guesses).
 
 Bounds (u_lower <= u <= u_upper) are exact box constraints on the knots of the
 piecewise constant and linear parametrizations; the others reject bounds.
+
+The horizon T [s] is a 0-d array leaf (the knots and the Chebyshev/Fourier time
+scaling are t = t0 + T s for a fixed grid in s): parametrizations of different T
+but the same n and dim share the solvers' compiled programs.
 """
 
 from __future__ import annotations
@@ -27,12 +31,18 @@ import numpy as np
 from nhjax.integrate.signals import PiecewiseConstant as _PC
 from nhjax.integrate.signals import PiecewiseLinear as _PL
 
+from .problem import compiled
+
 __all__ = ["Chebyshev", "CubicSpline", "Fourier", "Parametrization", "PiecewiseConstant", "PiecewiseLinear"]
+
+
+def _horizon(T):
+    return jnp.asarray(T, float)
 
 
 class Parametrization(eqx.Module):
     n: int = eqx.field(static=True)
-    T: float = eqx.field(static=True)
+    T: jax.Array = eqx.field(converter=_horizon)
     dim: int = eqx.field(static=True)
     t0: float = eqx.field(static=True, default=0.0)
 
@@ -51,17 +61,13 @@ class Parametrization(eqx.Module):
 
     def sample_times(self):
         """Times at which ``fit`` samples a target function."""
-        return np.linspace(self.t0, self.t0 + self.T, 4 * self.size // max(self.dim, 1) + 8)
+        return np.linspace(self.t0, self.t0 + float(self.T), 4 * self.size // max(self.dim, 1) + 8)
 
     def fit(self, u_fn):
         """Least-squares parameters whose signal best matches u_fn(t) (shape (dim,))."""
         ts = jnp.asarray(self.sample_times())
-        target = jax.vmap(u_fn)(ts).reshape(-1)
-        basis = jax.jacfwd(lambda p: jax.vmap(lambda t: self.signal(p)(t, None))(ts).reshape(-1))(
-            jnp.zeros(self.size)
-        )
-        offset = jax.vmap(lambda t: self.signal(jnp.zeros(self.size))(t, None))(ts).reshape(-1)
-        return jnp.linalg.lstsq(basis, target - offset)[0]
+        target = jax.vmap(u_fn)(ts)
+        return fit_samples(self, ts, target)
 
     def _check(self, params):
         params = jnp.asarray(params)
@@ -71,6 +77,19 @@ class Parametrization(eqx.Module):
                 f"parameters, got shape {params.shape}"
             )
         return params
+
+
+@compiled
+def fit_samples(param, ts, us):
+    """Least-squares parameters of ``param`` whose signal matches the samples us (N, dim)
+    at the times ts (N,): one compiled program per parametrization structure."""
+
+    def sig(p):
+        return jax.vmap(lambda t: param.signal(p)(t, None))(ts).reshape(-1)
+
+    p0 = jnp.zeros(param.size)
+    basis = jax.jacfwd(sig)(p0)
+    return jnp.linalg.lstsq(basis, jnp.reshape(us, -1) - sig(p0))[0]
 
 
 class PiecewiseConstant(Parametrization):
@@ -138,7 +157,7 @@ class CubicSpline(Parametrization):
 
 class _FourierSignal(eqx.Module):
     coeffs: jax.Array  # (2n+1, dim): a0, a1..an, b1..bn
-    omega: float = eqx.field(static=True)
+    omega: jax.Array
     t0: float = eqx.field(static=True)
 
     def __call__(self, t, x=None):
@@ -162,7 +181,7 @@ class Fourier(Parametrization):
 class _ChebyshevSignal(eqx.Module):
     coeffs: jax.Array  # (n+1, dim)
     t0: float = eqx.field(static=True)
-    T: float = eqx.field(static=True)
+    T: jax.Array
 
     def __call__(self, t, x=None):
         s = jnp.clip(2.0 * (t - self.t0) / self.T - 1.0, -1.0, 1.0)

@@ -42,7 +42,16 @@ import optimistix as optx
 import nhjax
 from nhjax.mechanics import AbstractSystem
 
-from .problem import OCP, ProblemError, as_problem_error, check_guess, check_ocp, check_tolerances
+from .problem import (
+    OCP,
+    Progress,
+    ProblemError,
+    as_problem_error,
+    check_guess,
+    check_ocp,
+    check_tolerances,
+    compiled,
+)
 
 __all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "solve_pontryagin"]
 
@@ -89,6 +98,26 @@ class HamiltonianSystem(AbstractSystem):
 
 @dataclasses.dataclass
 class IndirectResult:
+    """Outcome of ``solve_pontryagin``.
+
+    p0 : (n,) the initial costate p(0) [cost units per state unit].
+    nu : (m,) the multipliers of the terminal constraints, p(T) = dPhi/dx + (dpsi/dx)^T nu.
+    cost : Phi(x(T)) + int_0^T L(t, x, u*) dt along the extremal from (x0, p0),
+        integrated with the running cost as an extra state at the solve's rtol/atol.
+    violation : max |psi(x(T))| along that extremal [the constraints' units].
+    residual : max |shooting residual| at the solution (terminal constraints,
+        transversality and, for multiple shooting, the continuity of (x, p) at the
+        nodes).
+    converged : True when the residual is finite and below 1e3 * tol (optimistix's
+        Newton / Levenberg-Marquardt stops at rtol = atol = tol on its own measure).
+    message : "converged", or why not.
+    trajectory : an ``nhjax.Trajectory`` of (x, p) (``xs`` is (401, 2n), the state then
+        the costate) at 401 equally spaced times on [0, T].
+    controls : (401, k) the optimal control u*(t, x, p) at those times.
+    seconds : wall time of the call (compilation included on a first call) [s].
+    iterations : Newton / Levenberg-Marquardt steps.
+    """
+
     p0: np.ndarray
     nu: np.ndarray
     cost: float
@@ -160,24 +189,46 @@ def _root_solver(name, tol):
     return _ROOT_SOLVERS[key]
 
 
-@eqx.filter_jit
+@compiled
 def _residual_max(shooting, z):
     return jnp.max(jnp.abs(shooting.residual(z)))
 
 
-@eqx.filter_jit
-def _extremal(ham, p0, rtol, atol):
-    """The extremal from p0: saved (x, p), the controls, and the total cost."""
+def _extremal_body(ham, p0, rtol, atol):
+    """The extremal from p0 with its running cost integrated alongside (one solve):
+    saved (x, p), the controls, and the total cost."""
     ocp = ham.ocp
     n = ocp.x0.shape[0]
-    traj = _shoot(ham, rtol, atol, saveat=401, x0=ocp.x0, p0=p0)
+    tr = nhjax.simulate(_CostOfExtremal(ham), jnp.concatenate([ocp.x0, p0, jnp.zeros(1)]), ocp.T,
+                        rtol=rtol, atol=atol, saveat=401, track_work=False, diagnostics=False)
+    traj = eqx.tree_at(lambda t: (t.xs, t.x_end), tr, (tr.xs[:, : 2 * n], tr.x_end[: 2 * n]))
     xs, ps = traj.xs[:, :n], traj.xs[:, n:]
     us = jax.vmap(ham.u_star)(traj.ts, xs, ps)
-    tr = nhjax.simulate(_CostOfExtremal(ham), jnp.concatenate([ocp.x0, p0, jnp.zeros(1)]), ocp.T,
-                        rtol=rtol, atol=atol, saveat=2, track_work=False, diagnostics=False)
     yT = tr.xs[-1]
     cost = ocp.terminal(yT[:n])[0] + yT[-1]
     return traj, us, cost
+
+
+_extremal = compiled(_extremal_body)
+
+
+@compiled
+def _indirect(sh, z0, solver, max_steps, least_squares):
+    """The whole indirect solve as one program: optimistix's root find (or least
+    squares) on the shooting residual, then the extremal from the solution with its
+    cost, and the final residual (from the extremal's end for single shooting)."""
+    ocp = sh.ham.ocp
+    n, m = ocp.x0.shape[0], ocp.n_constraints
+    solve = optx.least_squares if least_squares else optx.root_find
+    sol = solve(_residual_fn, solver, z0, args=sh, max_steps=max_steps, throw=False)
+    z = sol.value
+    traj, us, cost = _extremal_body(sh.ham, z[:n], sh.rtol, sh.atol)
+    if sh.segments == 1:
+        yT = traj.xs[-1]
+        r = _terminal_residual(ocp, yT[:n], yT[n:], z[n:n + m])
+    else:
+        r = sh.residual(z)
+    return z, jnp.max(jnp.abs(r)), sol.stats["num_steps"], traj, us, cost
 
 
 def solve_pontryagin(
@@ -193,11 +244,19 @@ def solve_pontryagin(
     atol: float = 1e-11,
     tol: float = 1e-10,
     max_steps: int = 100,
+    progress: bool = True,
 ) -> IndirectResult:
     """Indirect shooting for ``ocp`` from a costate guess (default zeros).
 
     solver : "newton" (optimistix.Newton on the residuals) or "lm"
         (Levenberg–Marquardt, more robust far from the solution).
+    progress : a progress line (tqdm.auto) with the iterations, cost, violation and
+        residual when the solve ends (the iteration runs inside one compiled program,
+        which has no host callbacks so that JAX's persistent cache keeps it); False: none.
+
+    The root find, the extremal and its cost are one compiled program per problem
+    structure; the problem's numbers (x0, T, targets) and the guesses are its
+    arguments. Returns an ``IndirectResult``.
     """
     owner = "solve_pontryagin"
     check_ocp(ocp, owner)
@@ -221,42 +280,37 @@ def solve_pontryagin(
     S = segments if shooting == "multiple" else 1
     sh = _Shooting(ham, rt, at, S)
     z0 = jnp.concatenate([p0, nu])
-    _check_start(ham, sh, p0, nu, rt, at)
     if S > 1:
         guess = _shoot(ham, rt, at, saveat=S + 1, x0=ocp.x0, p0=p0).xs
         z0 = jnp.concatenate([z0, guess[1:-1].reshape(-1)])
+    bar = Progress(progress, 1, f"Pontryagin ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
+    converged = False
     try:
-        if solver == "newton":
-            sol = optx.root_find(_residual_fn, _root_solver(solver, tol), z0, args=sh,
-                                 max_steps=max_steps, throw=False)
-        else:
-            sol = optx.least_squares(_residual_fn, _root_solver(solver, tol), z0, args=sh,
-                                     max_steps=max_steps, throw=False)
-    except eqx.EquinoxRuntimeError as e:
-        raise ProblemError(
-            f"{owner}: a shooting iterate left the region where the extremal can be integrated (the start "
-            f"was finite; a later Newton step was too long): {str(e).splitlines()[0]}. Try solver='lm' "
-            "(damped steps), a closer p0_guess, or continuation from an easier problem") from e
-    z = sol.value
-    if not bool(jnp.all(jnp.isfinite(z))):
-        raise ProblemError(
-            f"{owner}: the shooting iteration diverged to NaN/inf from a finite start; try solver='lm' "
-            "(damped steps), a closer p0_guess, or continuation from an easier problem")
-    res = float(_residual_max(sh, z))
-    p0, nu = z[:n], z[n:n + m]
-    traj, us, cost = _extremal(ham, p0, rt, at)
-    psi = ocp.terminal(traj.xs[-1, :n])[1]
-    viol = float(jnp.max(jnp.abs(psi))) if m else 0.0
-    converged = bool(np.isfinite(res)) and res < 1e3 * tol
+        z, res, steps, traj, us, cost = _indirect(sh, z0, _root_solver(solver, tol), max_steps, solver == "lm")
+        res = float(res)
+        if not (bool(jnp.all(jnp.isfinite(z))) and np.isfinite(res)):
+            # say what is wrong with the start, if anything; else the iteration diverged
+            _check_start(ham, sh, p0, nu, rt, at)
+            raise ProblemError(
+                f"{owner}: the shooting iteration left the region where the extremal can be integrated, or "
+                "diverged to NaN/inf, from a finite start (a Newton step was too long); try solver='lm' "
+                "(damped steps), a closer p0_guess, or continuation from an easier problem")
+        p0, nu = z[:n], z[n:n + m]
+        psi = ocp.terminal(traj.xs[-1, :n])[1]
+        viol = float(jnp.max(jnp.abs(psi))) if m else 0.0
+        converged = bool(np.isfinite(res)) and res < 1e3 * tol
+        bar.update(iterations=int(steps), cost=float(cost), violation=f"{viol:.1e}", residual=f"{res:.1e}")
+    finally:
+        bar.finish(converged)
     msg = "converged" if converged else f"not converged: shooting residual {res:.2e}"
     return IndirectResult(
         p0=np.asarray(p0), nu=np.asarray(nu), cost=float(cost), violation=viol, residual=res,
         converged=converged, message=msg, trajectory=traj, controls=np.asarray(us),
-        seconds=time.perf_counter() - t_start, iterations=int(sol.stats["num_steps"]),
+        seconds=time.perf_counter() - t_start, iterations=int(steps),
     )
 
 
-@eqx.filter_jit
+@compiled
 def _terminal_pieces(ocp, xT, nu):
     """Phi, psi and their derivatives at x(T) (for the start's diagnosis)."""
     phi, psi = ocp.terminal(xT)
@@ -341,7 +395,7 @@ def continuation(solve: Callable, values, z0=None):
     return results
 
 
-@eqx.filter_jit
+@compiled
 def _costate_sweep(ham, control, xT, nu, rtol, atol, n_points, adjoint):
     """State and costate integrated backward from T along the control, with dH/du etc."""
     ocp = ham.ocp

@@ -8,6 +8,15 @@
 ``OCP`` holds the data; ``rollout`` simulates a control and returns the
 trajectory with its cost and terminal-constraint residual (the running cost is
 integrated as an extra state component, to the solver's tolerance).
+
+Compiled once per problem structure: every number of an OCP (x0, the horizon T,
+the arrays inside its cost and constraint modules, the system's parameters) is an
+array leaf of the pytree, so the solvers' compiled programs (``compiled`` below)
+take them as arguments and a solve with other values runs the same program
+(``TRACES`` counts the traces). The programs carry no host callbacks (equinox's
+runtime errors are traced as NaN outputs, which the solvers read as failures), so
+JAX's persistent compilation cache (``nhjax._cache``) keeps them for the next
+process.
 """
 
 from __future__ import annotations
@@ -20,7 +29,9 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
+import collections
 import contextlib
+import functools
 
 import numpy as np
 
@@ -30,7 +41,67 @@ from nhjax.errors import NhjaxError, ProblemError
 from nhjax.lie import Euclidean
 from nhjax.mechanics import AbstractSystem
 
-__all__ = ["OCP", "ProblemError", "rollout"]
+__all__ = ["OCP", "ProblemError", "TRACES", "rollout"]
+
+#: Traces of controls' compiled programs, by function name (a counter incremented in
+#: the traced Python body: a solve with new values of the same structure adds nothing).
+TRACES = collections.Counter()
+
+
+@contextlib.contextmanager
+def nan_errors():
+    """equinox's runtime errors (eqx.error_if in diffrax, optimistix, lineax and
+    simulate's checks) traced as NaN outputs instead of host callbacks, while the
+    programs of ``compiled`` are traced. A program with a host callback is never kept
+    in JAX's persistent cache; the solvers here read NaN/inf as a failed trial (the
+    line searches back off) and report it."""
+    from equinox import _errors
+
+    if not hasattr(_errors, "EQX_ON_ERROR"):
+        yield
+        return
+    old = _errors.EQX_ON_ERROR
+    _errors.EQX_ON_ERROR = "nan"
+    try:
+        yield
+    finally:
+        _errors.EQX_ON_ERROR = old
+
+
+def _clear_error_traces():
+    """Forget equinox's cached traces of its error checks: they are cached by argument
+    shapes and message only, so a trace made in one error mode would otherwise be
+    reused in the other (a host callback in our programs, or NaN instead of an error in
+    a user's own jitted simulate() afterwards)."""
+    from equinox import _errors
+
+    impl = getattr(_errors, "branched_error_if_impl_jit", None)
+    cached = getattr(impl, "_cached", None)
+    if cached is not None and hasattr(cached, "clear_cache"):
+        cached.clear_cache()
+
+
+def compiled(fn):
+    """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``."""
+
+    @functools.wraps(fn)
+    def counted(*args, **kwargs):  # runs only while tracing
+        TRACES[fn.__name__] += 1
+        _clear_error_traces()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            _clear_error_traces()
+
+    jitted = eqx.filter_jit(counted)
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        with nan_errors():
+            return jitted(*args, **kwargs)
+
+    call.jitted = jitted
+    return call
 
 
 @contextlib.contextmanager
@@ -45,6 +116,56 @@ def as_problem_error():
         if isinstance(e, (ValueError, TypeError)):
             raise ProblemError(str(e)) from e
         raise
+
+
+class Progress:
+    """One progress line (tqdm.auto: a text bar in terminals, a widget in notebooks) over
+    a solve: the bar counts outer iterations (or Newton iterations), the postfix shows
+    the latest iteration number, cost, violation, merit or stationarity and step.
+    ``finish(converged)`` closes it: a converged solve ends a full (green) bar however
+    few of the allowed iterations it took; an unconverged one stays short (red in
+    notebooks). ``on=False``: every method does nothing; a string ``on`` is the bar's
+    label instead of ``desc``."""
+
+    def __init__(self, on, total, desc):
+        self.bar, self.steps = None, 0
+        if isinstance(on, str):
+            desc = on
+        if on:
+            from tqdm.auto import tqdm
+
+            self.bar = tqdm(total=total, desc=desc, unit="it", leave=True, dynamic_ncols=True)
+
+    def inner(self, merit, gnorm, step):
+        """One inner step (merit value, gradient norm, accepted step length or None)."""
+        self.steps += 1
+        if self.bar is not None:
+            post = {"step": self.steps, "merit": f"{merit:.8g}", "|grad|": f"{gnorm:.1e}"}
+            if step is not None:
+                post["eta"] = f"{step:.2g}"
+            self.bar.set_postfix(post, refresh=False)
+            self.bar.update(0)  # redraws at most every mininterval (0.1 s)
+
+    def update(self, **post):
+        """One outer iteration done, with the numbers to show."""
+        if self.bar is not None:
+            self.bar.set_postfix({k: (f"{v:.8g}" if isinstance(v, float) else v) for k, v in post.items()},
+                                 refresh=False)
+            self.bar.update(1)
+
+    def finish(self, converged):
+        if self.bar is None:
+            return
+        notebook = hasattr(self.bar, "container")  # tqdm.notebook's widget
+        if converged and self.bar.n < (self.bar.total or 0):
+            self.bar.total = self.bar.n
+            if notebook:  # the widget's maximum too
+                self.bar.container.children[1].max = self.bar.n
+        if not converged:
+            self.bar.set_description(f"{self.bar.desc}: not converged", refresh=False)
+        self.bar.close()
+        if not converged and notebook:  # red even when every allowed iteration ran
+            self.bar.disp(bar_style="danger", check_delay=False)
 
 
 def check_tolerances(owner, **tols):
@@ -74,11 +195,14 @@ def check_parametrization(param, ocp, owner):
             f"the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
             f"{ocp.system.control_dim}"
         )
+    if V.is_traced(param.T, ocp.T):
+        return
     t0, T = float(getattr(param, "t0", 0.0)), float(param.T)
     if t0 > 1e-12 * max(1.0, ocp.T) or t0 + T < ocp.T * (1 - 1e-12):
         raise ProblemError(
             f"{owner}: the parametrization covers [{t0:g}, {t0 + T:g}] but the problem's horizon is "
-            f"[0, {ocp.T:g}]: build it with T = {ocp.T:g} (e.g. {type(param).__name__}(n, {ocp.T:g}, "
+            f"[0, {float(ocp.T):g}]: build it with T = {float(ocp.T):g} (e.g. {type(param).__name__}(n, "
+            f"{float(ocp.T):g}, "
             f"{param.dim}))")
 
 
@@ -98,12 +222,18 @@ class OCP(eqx.Module):
 
     running_cost(t, x, u) -> scalar; terminal_cost(x) -> scalar (or None);
     terminal_constraints(x) -> (m,) array (or None). Callables may be plain
-    functions or equinox modules (whose arrays are then parameters).
+    functions or equinox modules (whose arrays are then parameters: a new target
+    held in a module does not recompile; a number closed over by a plain function
+    is part of the program, so changing it compiles anew).
+
+    T [s] is stored as a 0-d float64 array (a leaf): a new horizon runs the same
+    compiled programs (the solvers' time grids scale with T). ``float(ocp.T)``
+    gives the number.
     """
 
     system: AbstractSystem
     x0: Any
-    T: float = eqx.field(static=True)
+    T: jax.Array
     running_cost: Callable
     terminal_cost: Callable | None = None
     terminal_constraints: Callable | None = None
@@ -118,13 +248,19 @@ class OCP(eqx.Module):
                                f"{type(system).__name__}")
         if system.control_dim == 0:
             raise ProblemError(f"{type(system).__name__} has no control inputs to optimize")
-        try:
-            T = float(T)
-        except (TypeError, ValueError):
-            raise ProblemError(f"{owner}: the horizon T must be a positive number of seconds, got {T!r}") from None
-        if not (np.isfinite(T) and T > 0):
-            raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
-                               "duration of the motion in seconds")
+        if V.is_traced(T):
+            T = jnp.asarray(T, float)
+            if T.shape != ():
+                raise ProblemError(f"{owner}: the horizon T must be a scalar, got shape {T.shape}")
+        else:
+            try:
+                T = float(np.asarray(T, float))
+            except (TypeError, ValueError):
+                raise ProblemError(f"{owner}: the horizon T must be a positive number of seconds, got {T!r}") from None
+            if not (np.isfinite(T) and T > 0):
+                raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
+                                   "duration of the motion in seconds")
+            T = jnp.asarray(T, float)
         with as_problem_error():
             V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
             V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",

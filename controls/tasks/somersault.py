@@ -194,7 +194,7 @@ class FreeWindingResult:
 
 def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=None,
                             start_windings=(1, 0, -1, 2), polish=True, rtol=1e-10, atol=1e-10,
-                            n_check=401, **direct_kw) -> FreeWindingResult:
+                            n_check=401, progress=True, **direct_kw) -> FreeWindingResult:
     """The velocity-controlled somersault with the winding left to the optimizer.
 
     For every starting loop (``loop_guess`` with each of ``start_windings``) the fiber
@@ -203,7 +203,9 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     runs from it. The cheapest converged optimum wins; its winding is measured on
     the solved path. With ``polish``, Pontryagin shooting starts from the costates
     that ``pmp_residual`` recovers from the direct optimum, and the two costs are
-    compared.
+    compared. Every start solves the same problem structure (only the fiber target and
+    the guess differ, both arrays), so the direct method compiles once for all starts.
+    progress : one progress line per start (and one for the polish); False: none.
     """
     t_start = time.perf_counter()
     param = Chebyshev(10, T, 2) if param is None else param
@@ -213,7 +215,8 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
         phi_end = 2 * np.pi * k * (1 - f0) if k else 0.0
         j = int(np.round((phi_end - turn) / (2 * np.pi)))
         ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
-        d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol, **direct_kw)
+        d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol,
+                         progress=f"start winding {k:+d}" if progress else False, **direct_kw)
         traj, _, _ = rollout(ocp, d.control, rtol=rtol, atol=atol, saveat=n_check)
         ws = traj.xs[0][:, :2]
         info = dict(start_winding=k, j=j, cost=d.cost, violation=d.violation, converged=d.converged,
@@ -228,7 +231,8 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     res = pmp_residual(best_ocp, best.control)
     stat = res["stationarity"]
     if polish:
-        ind = solve_pontryagin(best_ocp, res["ps"][-1], res["multipliers"])
+        ind = solve_pontryagin(best_ocp, res["ps"][-1], res["multipliers"],
+                               progress="Pontryagin polish" if progress else False)
         agree = abs(best.cost - ind.cost) / abs(ind.cost)
     return FreeWindingResult(best=best, ocp=best_ocp, winding=best_info["winding"],
                              min_theta=best_info["min_theta"], starts=starts, indirect=ind,

@@ -90,7 +90,8 @@ from nhjax.scenes import ShellWithTop, ShellWithTopReduced
 import nhjax
 
 from ..newton import solve_direct_newton
-from ..problem import OCP, CostAugmented, ProblemError, _OnState
+from ..parametrize import fit_samples
+from ..problem import OCP, CostAugmented, ProblemError, _OnState, compiled
 from .somersault import Effort
 
 __all__ = [
@@ -298,7 +299,7 @@ def linear_guess(ocp: OCP, param, rcond=1e-10, multipliers=False):
     return (p, -2.0 * lam) if multipliers else p
 
 
-@eqx.filter_jit
+@compiled
 def _linear_control(ocp, ts, rcond):
     rob, x0, T = ocp.system, ocp.x0, ocp.T
     n = 2 + 3 + 3 + x0[1].shape[0]
@@ -320,16 +321,7 @@ def _linear_control(ocp, ts, rcond):
     return jax.vmap(lambda t: B.T @ jax.scipy.linalg.expm(A.T * (T - t)) @ (C.T @ lam))(ts), lam
 
 
-@eqx.filter_jit
-def _fit(param, ts, us):
-    """Least-squares parameters whose signal matches the samples us (N, dim) at ts."""
-
-    def sig(p):
-        return jax.vmap(lambda t: param.signal(p)(t, None))(ts).reshape(-1)
-
-    p0 = jnp.zeros(param.size)
-    basis = jax.jacfwd(sig)(p0)
-    return jnp.linalg.lstsq(basis, us.reshape(-1) - sig(p0))[0]
+_fit = fit_samples  # one compiled least-squares fit per parametrization structure
 
 
 class _TorqueImpulseRate(eqx.Module):

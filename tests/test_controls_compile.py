@@ -1,0 +1,135 @@
+"""Compile once per problem structure: a second solve with other numbers (initial state,
+target, horizon T, cost weight, a system parameter, guess, tolerances) traces nothing
+and finds the optimum of the new numbers (minimum-energy double integrator, closed
+form); the compiled programs carry no host callbacks (so JAX's persistent cache keeps
+them); the progress line ends full when a solve converges and short when it does not."""
+
+import importlib
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import controls
+from controls import direct, pontryagin
+from controls.problem import TRACES, nan_errors
+from nhjax.mechanics import AbstractSystem
+
+# the module (nhjax.integrate re-exports a function of the same name)
+nsim = importlib.import_module("nhjax.integrate.simulate")
+
+
+class ScaledIntegrator(AbstractSystem):
+    """q'' = b u (b: a system parameter, an array leaf)."""
+
+    b: jax.Array
+    control_dim = 1
+    state_names = ("q", "v")
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([x[1], self.b * u[0]])
+
+
+class WeightedEffort(eqx.Module):
+    w: jax.Array
+
+    def __call__(self, t, x, u):
+        return 0.5 * self.w * u @ u
+
+
+class Target(eqx.Module):
+    x: jax.Array
+
+    def __call__(self, x):
+        return x - self.x
+
+
+def problem(x0, target, T, w, b):
+    return controls.OCP(ScaledIntegrator(jnp.asarray(b, float)), jnp.asarray(x0, float), T,
+                        running_cost=WeightedEffort(jnp.asarray(w, float)),
+                        terminal_constraints=Target(jnp.asarray(target, float)))
+
+
+def exact_cost(x0, target, T, w, b):
+    """min 0.5 w int u^2 s.t. q'' = b u: 0.5 w / b^2 d^T W^-1 d, d = x(T) - e^{AT} x0,
+    W the controllability Gramian of the double integrator over [0, T]."""
+    q0, v0 = x0
+    d = np.asarray(target, float) - np.array([q0 + v0 * T, v0])
+    W = np.array([[T**3 / 3, T**2 / 2], [T**2 / 2, T]])
+    return 0.5 * w / b**2 * d @ np.linalg.solve(W, d)
+
+
+def counts():
+    return dict(TRACES), nsim.TRACES["solve"]
+
+
+def test_new_numbers_do_not_retrace_and_reach_their_own_optimum():
+    first = ((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
+    second = ((0.3, -0.5), (1.4, 0.2), 1.7, 2.5, 0.8)  # every number changed, T too
+    n = 4
+    for k, case in enumerate((first, second)):
+        ocp = problem(*case)
+        T = case[2]
+        param = controls.PiecewiseLinear(n, T, 1)  # the optimal u is linear in t: exact here
+        guess = jnp.full(param.size, 0.1 * k)
+        before = counts()
+        d = controls.solve_direct(ocp, param, guess, rtol=1e-10 * (1 + k), atol=1e-10, progress=False)
+        res = controls.pmp_residual(ocp, d.control)  # multipliers fitted: the costate sweep uses T
+        ind = controls.solve_pontryagin(ocp, progress=False)
+        if k:  # the second solve ran the programs the first one compiled
+            assert counts() == before, (before, counts())
+        want = exact_cost(*case)
+        assert d.converged and d.violation < 1e-8
+        np.testing.assert_allclose(d.cost, want, rtol=1e-8)
+        assert ind.converged and ind.violation < 1e-9
+        np.testing.assert_allclose(ind.cost, want, rtol=1e-10)
+        assert res["stationarity"] < 1e-4
+        np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
+
+
+def test_compiled_programs_have_no_host_callbacks():
+    """The merit/gradient program of solve_direct and the whole Pontryagin solve lower
+    without host callbacks (equinox's runtime errors are traced as NaN); the same merit
+    with equinox's default error mode does contain one (so the check can fail)."""
+    ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
+    param = controls.PiecewiseLinear(4, 1.0, 1)
+    tr = direct._Transcription(ocp, param, jnp.asarray(1e-10), jnp.asarray(1e-10), 1)
+    args = (tr, jnp.zeros(param.size), jnp.zeros(2), jnp.asarray(1.0))
+    with nan_errors():
+        ours = direct._merit_and_grad.jitted.lower(*args).as_text()
+    assert "callback" not in ours
+    # control: equinox's default error mode puts host callbacks in the same merit (a
+    # system class of its own, so that no trace cached above is reused)
+    class Checked(ScaledIntegrator):
+        pass
+
+    checked = controls.OCP(
+        Checked(jnp.asarray(1.0)), ocp.x0, ocp.T, running_cost=ocp.running_cost,
+        terminal_constraints=ocp.terminal_constraints)
+    tr_c = direct._Transcription(checked, param, jnp.asarray(1e-10), jnp.asarray(1e-10), 1)
+    with_checks = eqx.filter_jit(lambda tr, z, lam, rho: jax.value_and_grad(tr.merit, has_aux=True)(z, lam, rho))
+    assert "callback" in with_checks.lower(tr_c, *args[1:]).as_text()
+
+    ham = pontryagin.HamiltonianSystem(ocp)
+    sh = pontryagin._Shooting(ham, jnp.asarray(1e-11), jnp.asarray(1e-11), 1)
+    with nan_errors():
+        text = pontryagin._indirect.jitted.lower(sh, jnp.zeros(4), pontryagin._root_solver("newton", 1e-10),
+                                                 100, False).as_text()
+    assert "callback" not in text
+
+
+def test_progress_line_ends_full_when_converged(capsys):
+    ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
+    param = controls.PiecewiseLinear(4, 1.0, 1)
+    d = controls.solve_direct(ocp, param, progress=True)
+    err = capsys.readouterr().err
+    last = err.replace("\r", "\n").strip().splitlines()[-1]
+    assert d.converged and "100%" in last and "violation" in last, last
+    done = d.history["outer"][-1]
+    assert f"{done}/{done}" in last  # the bar was shortened to the iterations used
+    d = controls.solve_direct(ocp, param, progress=True, max_outer=1)  # stops early: a short bar
+    last = capsys.readouterr().err.replace("\r", "\n").strip().splitlines()[-1]
+    assert not d.converged and "not converged" in last, last
+    controls.solve_direct(ocp, param, progress=False)
+    assert capsys.readouterr().err == ""
