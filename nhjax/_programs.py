@@ -206,10 +206,17 @@ def _global_names(code: types.CodeType):
     return sorted(names)
 
 
+def _error_mode() -> str:
+    """equinox's runtime-error mode, read while tracing (it changes the program)."""
+    from equinox import _errors
+
+    return str(getattr(_errors, "EQX_ON_ERROR", "?"))
+
+
 def fingerprint(*objs) -> str:
     """The cache key of a call on ``objs`` (raises Uncacheable when it cannot be made)."""
     h = hashlib.sha256()
-    h.update(f"format={FORMAT};env={_environment()};".encode())
+    h.update(f"format={FORMAT};env={_environment()};errors={_error_mode()};".encode())
     dynamic = frozenset(id(x) for x in jtu.tree_leaves(objs) if eqx.is_array(x))
     h.update(_Fingerprint(dynamic)(objs).encode())
     return h.hexdigest()
@@ -269,7 +276,7 @@ def _quick_key(name, fn, args):
     seen, exactly as by jax.jit). None if a static value is unhashable."""
     leaves, treedef = jtu.tree_flatten(args)
     desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
-    key = ("quick", name, fn, treedef, desc)
+    key = ("quick", name, fn, treedef, desc, _error_mode())
     try:
         hash(key)
     except TypeError:

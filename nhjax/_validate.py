@@ -68,6 +68,17 @@ def is_traced(*trees) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves(trees))
 
 
+def error_if(x, pred, msg):
+    """``equinox.error_if`` with equinox's current error mode passed explicitly: the mode
+    is then part of the key of equinox's cached trace of the check, so a check traced
+    in one mode (callbacks by default, NaN under controls' ``nan_errors``) is never
+    reused in another."""
+    from equinox import _errors
+
+    return eqx.error_if(x, pred, msg, on_error=getattr(_errors, "EQX_ON_ERROR", "raise"))
+
+
+
 def _where(owner: str) -> str:
     return f"{owner}: " if owner else ""
 
@@ -687,12 +698,12 @@ def runtime_checks(x0, report, *, constraint_tol, project, owner="nhjax.simulate
     """The checks of ``raise_for_report`` as ``equinox.error_if`` runtime errors on x0
     (for traced values: inside jit, vmap or grad). Chart guards and regularity margins
     are left to the solve (its guard event and NaN checks)."""
-    x0 = eqx.error_if(x0, ~report["finite"], f"{owner}: initial state {name} contains NaN or inf; pass finite numbers")
-    x0 = eqx.error_if(x0, ~report["control_finite"],
+    x0 = error_if(x0, ~report["finite"], f"{owner}: initial state {name} contains NaN or inf; pass finite numbers")
+    x0 = error_if(x0, ~report["control_finite"],
                       f"{owner}: control(t0, x0) returned NaN or inf; the control must be finite where the motion starts")
     for part in report["group"]:
         bad = ~(report["group"][part] <= constraint_tol) | ~(report["group_det"][part] > 0)
-        x0 = eqx.error_if(
+        x0 = error_if(
             x0, bad, f"{owner}: {part} is not on its group (rotation error beyond constraint_tol, or det <= 0)"
             + ("" if project else "; pass project=True to simulate() to replace it by the nearest group element"))
     for cname, res in report["constraints"].items():
@@ -702,7 +713,7 @@ def runtime_checks(x0, report, *, constraint_tol, project, owner="nhjax.simulate
         else:
             msg = (f"{owner}: initial state violates constraint '{cname}' beyond constraint_tol. Pass "
                    "project=True to simulate() to project it onto the constraint manifold, or fix the initial state")
-        x0 = eqx.error_if(x0, ~(res <= constraint_tol), msg)
+        x0 = error_if(x0, ~(res <= constraint_tol), msg)
     return x0
 
 
@@ -765,7 +776,7 @@ def time_span(t0, t1, *, owner="simulate"):
                 f"{_where(owner)}t1 = {float(t1)} must be greater than t0 = {float(t0)} ({kind}); nhjax "
                 "integrates forward in time: pass t1 > t0")
         return t0, t1
-    t1 = eqx.error_if(jnp.asarray(t1, float), ~(jnp.asarray(t1, float) > jnp.asarray(t0, float)),
+    t1 = error_if(jnp.asarray(t1, float), ~(jnp.asarray(t1, float) > jnp.asarray(t0, float)),
                       f"{_where(owner)}t1 must be greater than t0 (an empty or reversed time span); pass t1 > t0")
     return t0, t1
 

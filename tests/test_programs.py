@@ -135,3 +135,4 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     assert second["xs"] == first["xs"] and second["drift"] == first["drift"]
     assert second["batch"] == first["batch"] and second["steps"] == first["steps"]
     assert len(set(first["steps"])) > 1  # members of different lengths
+

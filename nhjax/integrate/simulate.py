@@ -36,6 +36,7 @@ import optimistix as optx
 
 from .. import _programs
 from .._validate import (
+    error_if,
     check_control,
     check_saveat,
     check_state,
@@ -140,6 +141,10 @@ class _Static:
     # one array through the solver instead of a (state, work) pair, which costs about
     # as much per step as the state itself on small systems
     flat_work: bool = False
+    # equinox's runtime-error mode when a traced call was made (controls traces with
+    # errors as NaN): part of the key of the nested jit, so a trace made in one mode is
+    # never reused in another
+    error_mode: str = ""
 
 
 def _is_traced(*trees) -> bool:
@@ -628,6 +633,8 @@ def simulate(
     show = np.asarray(bool(progress))
     if not traced:  # inputs checked above: diffrax's runtime checks stay out of the program
         static = dataclasses.replace(static, runtime_checks=False)
+    else:
+        static = dataclasses.replace(static, error_mode=_programs._error_mode())
     if traced:
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
@@ -711,11 +718,11 @@ def _runtime_checks(traj, static, on_guard):
     ev = diffrax.RESULTS.event_occurred
     bad = (traj.result != ok) & (traj.result != ev)
     out = (traj.ts, traj.xs, traj.x_end)
-    out = eqx.error_if(
+    out = error_if(
         out, bad, "nhjax.simulate: the solve failed (max_steps exhausted, or NaN/inf in the vector field)"
     )
     if on_guard == "raise" and static.guard_names:
-        out = eqx.error_if(out, traj.result == ev, _GUARD_MSG)
+        out = error_if(out, traj.result == ev, _GUARD_MSG)
     return eqx.tree_at(lambda t: (t.ts, t.xs, t.x_end), traj, out)
 
 
