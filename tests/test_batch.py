@@ -293,8 +293,17 @@ def test_sweep_mode_returns_every_members_status():
 def test_new_values_of_the_same_structure_do_not_trace_again():
     """A batch with other initial states, system parameters, control coefficients,
     tolerances, horizon or number of members (within a chunk's capacity) reuses the
-    compiled chunk: no new trace (counted), and the results are the new ones."""
+    compiled chunk: no new trace and no new compile (counted), and the results are the
+    new ones."""
     from nhjax.integrate import batch
+
+    compiles = []
+
+    def counting(real):
+        def fn(*a, **k):
+            compiles.append(1)
+            return real(*a, **k)
+        return fn
 
     cats = nhjax.stack([FallingCat(lam=lam) for lam in (0.3, 0.4, 0.5)])
     X = jnp.stack([FallingCat().initial_state(0.8, chi_dot=c) for c in (0.3, 0.5, 0.9, 1.2)])
@@ -305,10 +314,17 @@ def test_new_values_of_the_same_structure_do_not_trace_again():
     lams = (0.35, 0.6, 0.45, 0.5)
     other = nhjax.Sinusoids([0.01, 0.0], [0.03, 0.05], [1.1, 0.7], [0.2, 0.1])
     cats2 = nhjax.stack([FallingCat(lam=lam) for lam in lams])
-    tr = nhjax.simulate_batch(cats2, X + 0.01, 2.5, control=other, rtol=1e-9, atol=1e-9, **kw)
+    X2 = X + 0.01
+    real = batch._cached_lockstep, batch._compile
+    batch._cached_lockstep, batch._compile = counting(real[0]), counting(real[1])
+    try:
+        tr = nhjax.simulate_batch(cats2, X2, 2.5, control=other, rtol=1e-9, atol=1e-9, **kw)
+    finally:
+        batch._cached_lockstep, batch._compile = real
     assert dict(batch.TRACES) == before
+    assert not compiles  # the compiled chunk is kept, not compiled again per call
     for i, lam in enumerate(lams):
-        one = nhjax.simulate(FallingCat(lam=lam), X[i] + 0.01, 2.5, control=other, rtol=1e-9, atol=1e-9,
+        one = nhjax.simulate(FallingCat(lam=lam), X2[i], 2.5, control=other, rtol=1e-9, atol=1e-9,
                              saveat=2)
         np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
 

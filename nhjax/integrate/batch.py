@@ -581,10 +581,11 @@ def simulate_batch(
         all_args += (True, n_lanes) if lockstep else ()
         key = _compile_key(chunk_fn, all_args)
         solve = _COMPILED.get(key) if key is not None else None
-        if solve is None and lockstep:
-            solve = _cached_lockstep(all_args, tuple(ex_sys.state_names))
         if solve is None:
-            solve = _compile(chunk_fn.lower(*all_args), _COMPILER_OPTIONS if lockstep else {})
+            if lockstep:  # its traced program from nhjax's program cache when it can be
+                solve = _cached_lockstep(all_args, tuple(ex_sys.state_names))
+            if solve is None:
+                solve = _compile(chunk_fn.lower(*all_args), _COMPILER_OPTIONS if lockstep else {})
             if key is not None:
                 if len(_COMPILED) >= 32:  # keep the 32 newest programs
                     _COMPILED.pop(next(iter(_COMPILED)))
