@@ -96,8 +96,8 @@ def _is_library(module: str | None) -> bool:
     return bool(module) and module.split(".")[0] in LIBRARIES
 
 
-def _code(code: types.CodeType, fp, seen) -> str:
-    consts = ",".join(_code(c, fp, seen) if isinstance(c, types.CodeType) else fp(c) for c in code.co_consts)
+def _code(code: types.CodeType, fp) -> str:
+    consts = ",".join(_code(c, fp) if isinstance(c, types.CodeType) else fp(c) for c in code.co_consts)
     return f"code({code.co_code.hex()};{consts};{code.co_names};{code.co_varnames};{code.co_freevars})"
 
 
@@ -186,7 +186,7 @@ class _Fingerprint:
         code = getattr(fn, "__code__", None)
         if code is None:
             raise Uncacheable(f"cannot read the code of {name}")
-        parts = [f"fn:{name}", _code(code, self, self.seen)]
+        parts = [f"fn:{name}", _code(code, self)]
         globs = getattr(fn, "__globals__", {})
         for g in _global_names(code):
             if g in globs:

@@ -426,19 +426,6 @@ def _save_times(saveat, t0, t1):
 _member_report = eqx.filter_jit(member_report)
 
 
-@eqx.filter_jit
-def _initial_report(system, control, x0, t0, project):
-    """Everything simulate() checks about x0, in one compiled call: the legacy view
-    (x0, finite, constraint residuals, guards, margins) of ``nhjax._validate.member_report``,
-    which also checks group membership and the control's value (use that per member).
-
-    Shape errors of the control are raised while tracing (they depend on
-    structure only); the numbers come back as a small pytree.
-    """
-    x0, r = member_report(system, control, x0, t0, project)
-    return x0, r["finite"], r["constraints"], r["guards"], r["margins"]
-
-
 def _check_inputs(system, control, x0, t0, constraint_tol, project):
     """Validate structure, shapes, finiteness, group membership and constraints of x0
     (``nhjax._validate``); returns (x0 (maybe projected), guard names, whether the
