@@ -213,10 +213,12 @@ def _error_mode() -> str:
     return str(getattr(_errors, "EQX_ON_ERROR", "?"))
 
 
-def fingerprint(*objs) -> str:
-    """The cache key of a call on ``objs`` (raises Uncacheable when it cannot be made)."""
+def fingerprint(*objs, error_mode: str | None = None) -> str:
+    """The cache key of a call on ``objs`` (raises Uncacheable when it cannot be made).
+    ``error_mode``: equinox's error mode the function sets for itself while it is traced
+    (default: the mode in force now)."""
     h = hashlib.sha256()
-    h.update(f"format={FORMAT};env={_environment()};errors={_error_mode()};".encode())
+    h.update(f"format={FORMAT};env={_environment()};errors={error_mode or _error_mode()};".encode())
     dynamic = frozenset(id(x) for x in jtu.tree_leaves(objs) if eqx.is_array(x))
     h.update(_Fingerprint(dynamic)(objs).encode())
     return h.hexdigest()
@@ -235,19 +237,19 @@ def _store(path: Path, data: bytes):
         oldest.unlink(missing_ok=True)
 
 
-def _program(name: str, fn: Callable, args: tuple):
+def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
     """(caller, exported, output treedef) of ``fn`` on ``args``'s structure, from memory,
     disk or a new export; None when it cannot be cached."""
     folder = directory()
     if folder is None or jax.config.jax_disable_jit:
         return None
-    quick = _quick_key(name, fn, args)
+    quick = _quick_key(name, fn, args, error_mode)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
     if program is not None:
         return None if program is _FAILED else program
     try:
-        key = f"{name}-{fingerprint(name, fn, args)}"
+        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
     except Uncacheable:
         STATS["uncacheable"] += 1
         if quick is not None:
@@ -270,13 +272,13 @@ def _program(name: str, fn: Callable, args: tuple):
     return None if program is _FAILED else program
 
 
-def _quick_key(name, fn, args):
+def _quick_key(name, fn, args, error_mode=None):
     """The in-process key, as jax.jit's own cache has it: structure, shapes and dtypes,
     and the static values by hash (a global changed later in the same process is not
     seen, exactly as by jax.jit). None if a static value is unhashable."""
     leaves, treedef = jtu.tree_flatten(args)
     desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
-    key = ("quick", name, fn, treedef, desc, _error_mode())
+    key = ("quick", name, fn, treedef, desc, error_mode or _error_mode())
     try:
         hash(key)
     except TypeError:
@@ -315,13 +317,15 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
     return run
 
 
-def call(name: str, fn: Callable, args: tuple):
+def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
     """``fn(*args)`` (a jax-traceable function returning a pytree of arrays in builtin
     containers), with its traced program taken from / kept in the program cache.
 
     Equivalent to ``eqx.filter_jit(fn)(*args)``; falls back to it when caching is off
-    or the arguments cannot be fingerprinted."""
-    program = _program(name, fn, args)
+    or the arguments cannot be fingerprinted. ``error_mode``: the equinox error mode
+    ``fn`` sets for itself while traced (then the mode in force, which another thread
+    may be changing, is not read)."""
+    program = _program(name, fn, args, error_mode)
     if program is None:
         return eqx.filter_jit(fn)(*args)
     caller, _, out_def = program

@@ -23,6 +23,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import functools
+import threading
 import dataclasses
 from typing import Any
 
@@ -233,8 +234,9 @@ def _warm_diagnostics(system, control, x0, t0, ts, track):
     n = ts.shape[0]
     xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
     work = jnp.zeros(n) if track else None
-    jax.block_until_ready(_programs.call("diagnose", _diagnose, (system, control, x0, t0, ts, xs, jnp.asarray(t0),
-                                                                 work, track)))
+    jax.block_until_ready(_programs.call("diagnose", _diagnose_eager,
+                                         (system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track),
+                                         error_mode="off"))
 
 
 _WARM_POOL = None
@@ -383,24 +385,37 @@ def _solve_cached(*args):
     static = args[10]
     if static.progress:  # a host callback in the loop: jax.export cannot keep that program
         return _solve(*args)
-    return _from_plain(_programs.call("simulate", _solve_plain, args), static.state_names)
+    mode = None if static.runtime_checks else "off"  # _solve_impl traces with checks off
+    return _from_plain(_programs.call("simulate", _solve_plain, args, error_mode=mode), static.state_names)
+
+
+def _diagnose_eager(*args):
+    """_diagnose traced without equinox's runtime checks (eager calls: checked states)."""
+    with _error_checks(False):
+        return _diagnose(*args)
+
+
+_ERROR_MODE_LOCK = threading.RLock()
 
 
 @contextlib.contextmanager
 def _error_checks(on: bool):
     """equinox's runtime errors as configured (on) or off while a solve is traced.
-    (equinox reads its EQX_ON_ERROR setting from this module global at trace time.)"""
+    (equinox reads its EQX_ON_ERROR setting from this module global at trace time; the
+    lock keeps two threads that trace at once -- the eager solve and its diagnostics --
+    from restoring each other's setting.)"""
     from equinox import _errors
 
     if on or not hasattr(_errors, "EQX_ON_ERROR"):
         yield
         return
-    old = _errors.EQX_ON_ERROR
-    _errors.EQX_ON_ERROR = "off"
-    try:
-        yield
-    finally:
-        _errors.EQX_ON_ERROR = old
+    with _ERROR_MODE_LOCK:
+        old = _errors.EQX_ON_ERROR
+        _errors.EQX_ON_ERROR = "off"
+        try:
+            yield
+        finally:
+            _errors.EQX_ON_ERROR = old
 
 
 def _save_times(saveat, t0, t1):
@@ -638,7 +653,8 @@ def simulate(
                              show)
         warm.result()
         invariants, drift, cons, us = _programs.call(
-            "diagnose", _diagnose, (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track))
+            "diagnose", _diagnose_eager, (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track),
+            error_mode="off")
         traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
                                    constraint_drift=cons, us=us)
     if traced:
