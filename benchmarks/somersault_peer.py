@@ -179,7 +179,7 @@ def ours_rows():
     ):
         t = time.perf_counter()
         try:
-            first = fn()
+            fn()  # first call: compiles
         except Exception as e:  # noqa: BLE001 -- report, do not stop the benchmark
             print(f"  {name} ({method}): failed: {type(e).__name__}: {e}", flush=True)
             rows.append(dict(solver=name, method=method, status=f"failed: {type(e).__name__}: {e}"))
@@ -258,10 +258,19 @@ def first_answer_task(task):
             return r.cost, r.violation, r.converged, None
         raise SystemExit(f"unknown task {task}")
 
+    report_first_answer(task, t_import, solve)
+
+
+def report_first_answer(task, t_import, solve, reference=None):
+    """In the child: time ``solve()`` (the first answer: tracing, compiling, solving) and
+    two more calls (after compile), and print the FIRST_ANSWER line that
+    run_first_answer reads. ``solve`` returns (cost, violation, converged) and optionally
+    the reference cost (else ``reference``)."""
     t = time.perf_counter()
-    cost, viol, conv, ref = solve()
+    cost, viol, conv, *rest = solve()
     first = time.perf_counter() - t
     first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
+    ref = rest[0] if rest and rest[0] is not None else reference
     after = []
     for _ in range(2):
         t = time.perf_counter()

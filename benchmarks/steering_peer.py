@@ -194,7 +194,7 @@ def ours_rows(pontryagin=True):
     def timed(name, method, fn, note=None):
         t = time.perf_counter()
         try:
-            first = fn()
+            fn()  # first call: compiles
         except Exception as e:  # noqa: BLE001 -- report, do not stop the benchmark
             print(f"  {name} ({method}): failed: {type(e).__name__}: {e}", flush=True)
             rows.append(dict(solver=name, method=method, status=f"failed: {type(e).__name__}: {e}"))
@@ -276,20 +276,10 @@ def first_answer_task(task):
         r = solve_direct_newton(ocp, param, linear_guess(ocp, param), progress=False)
         return r.cost, r.violation, r.converged
 
-    t = time.perf_counter()
-    cost, viol, conv = solve()
-    first = time.perf_counter() - t
-    first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
-    after = []
-    for _ in range(2):
-        t = time.perf_counter()
-        solve()
-        after.append(time.perf_counter() - t)
-    print("FIRST_ANSWER " + json.dumps(dict(
-        task=task, import_seconds=t_import, first_seconds=first, first_cpu_seconds=first_cpu,
-        after_seconds=float(np.median(after)),
-        cost=float(cost), violation=float(viol), converged=bool(conv),
-        rel_diff=(float(cost) - REFERENCE_COST) / REFERENCE_COST)), flush=True)
+    sys.path.insert(0, str(HERE))
+    from somersault_peer import report_first_answer
+
+    report_first_answer(task, t_import, solve, reference=REFERENCE_COST)
 
 
 def goals(peer_text=""):
