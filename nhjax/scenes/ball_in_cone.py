@@ -108,6 +108,26 @@ def _vec(a):
     return jnp.concatenate([jnp.zeros_like(a[..., :1]), a], axis=-1)
 
 
+def cone_parameters(owner, m, r, J, gamma, g):
+    """The checked parameters (m, r, J, gamma, g) of a ball in a cone (both models)."""
+    return (
+        positive("m", m, owner=owner, what="mass [kg]"),
+        positive("r", r, owner=owner, what="radius [m]"),
+        positive("J", J, owner=owner, what="moment of inertia about a diameter [kg m^2]"),
+        in_range("gamma", gamma, 0.0, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
+                 what="half opening angle of the cone, between axis and generator [rad]"),
+        positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]"),
+    )
+
+
+def cone_frame(gamma, c, s):
+    """(g, e_a, n) at the azimuth with cosine c and sine s: generator, horizontal
+    tangent, inward normal (3,) each, for the half opening angle gamma."""
+    sg, cg = jnp.sin(gamma), jnp.cos(gamma)
+    return (jnp.stack([sg * c, sg * s, cg]), jnp.stack([-s, c, jnp.zeros_like(c)]),
+            jnp.stack([-cg * c, -cg * s, sg]))
+
+
 class BallInCone(ConstrainedLagrangian):
     """Homogeneous ball rolling inside a cone, in (u, p) in R^3 x S^3 (seed 002, 9.20-9.29).
 
@@ -129,12 +149,7 @@ class BallInCone(ConstrainedLagrangian):
 
     def __init__(self, m=1.0, r=1.0, J=0.4, gamma=1.0, g=1.0, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
         owner = "BallInCone"
-        self.m = positive("m", m, owner=owner, what="mass [kg]")
-        self.r = positive("r", r, owner=owner, what="radius [m]")
-        self.J = positive("J", J, owner=owner, what="moment of inertia about a diameter [kg m^2]")
-        self.gamma = in_range("gamma", gamma, 0.0, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
-                              what="half opening angle of the cone, between axis and generator [rad]")
-        self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.m, self.r, self.J, self.gamma, self.g = cone_parameters(owner, m, r, J, gamma, g)
         self.chart_eps = float(in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner=owner, as_float=True,
                                         shape=(), what="margin of the axis guard D > chart_eps r"))
         self.n = 7
@@ -144,10 +159,7 @@ class BallInCone(ConstrainedLagrangian):
     def frame(self, u):
         """(g, e_a, n) at the azimuth of the point u (3,): generator, horizontal tangent, inward normal."""
         D = jnp.sqrt(u[0] ** 2 + u[1] ** 2)
-        c, s = u[0] / D, u[1] / D
-        sg, cg = jnp.sin(self.gamma), jnp.cos(self.gamma)
-        z = jnp.zeros_like(c)
-        return (jnp.stack([sg * c, sg * s, cg]), jnp.stack([-s, c, z]), jnp.stack([-cg * c, -cg * s, sg]))
+        return cone_frame(self.gamma, u[0] / D, u[1] / D)
 
     @staticmethod
     def spatial_angular_velocity(p, pd):

@@ -48,7 +48,8 @@ import numpy as np
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real
+from ._validate import in_range, real
+from .ball_in_cone import cone_frame, cone_parameters
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["BallInConeEuler"]
@@ -86,12 +87,7 @@ class BallInConeEuler(ConstrainedLagrangian):
 
     def __init__(self, m=1.0, r=1.0, J=0.4, gamma=1.0, g=1.0, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
         owner = "BallInConeEuler"
-        self.m = positive("m", m, owner=owner, what="mass [kg]")
-        self.r = positive("r", r, owner=owner, what="radius [m]")
-        self.J = positive("J", J, owner=owner, what="moment of inertia about a diameter [kg m^2]")
-        self.gamma = in_range("gamma", gamma, 0.0, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
-                              what="half opening angle of the cone, between axis and generator [rad]")
-        self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
+        self.m, self.r, self.J, self.gamma, self.g = cone_parameters(owner, m, r, J, gamma, g)
         self.chart_eps = float(in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner=owner, as_float=True,
                                         shape=(), what="margin of the guards sin(theta) > chart_eps, D > chart_eps r"))
         self.n = 5
@@ -100,10 +96,7 @@ class BallInConeEuler(ConstrainedLagrangian):
     # ------------------------------------------------------------ geometry
     def frame(self, alpha):
         """(g, e_a, n) at azimuth alpha: generator, horizontal tangent, inward normal (3,) each."""
-        c, s = jnp.cos(alpha), jnp.sin(alpha)
-        sg, cg = jnp.sin(self.gamma), jnp.cos(self.gamma)
-        return (jnp.stack([sg * c, sg * s, cg]), jnp.stack([-s, c, jnp.zeros_like(c)]),
-                jnp.stack([-cg * c, -cg * s, sg]))
+        return cone_frame(self.gamma, jnp.cos(alpha), jnp.sin(alpha))
 
     def centre(self, q):
         """u = rho g(alpha) + r n(alpha) [m] (3,)."""
