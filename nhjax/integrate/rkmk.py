@@ -178,26 +178,38 @@ _RK4 = _Tableau(
 
 def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0):
     """The stage loop as a lax.scan: the vector field is traced once instead of once
-    per stage (much faster to compile for large vector fields)."""
+    per stage (much faster to compile for large vector fields). ``f0=None``: the first
+    stage's vector field, f(t0, y0), is evaluated by the scan too (its first iteration,
+    at y0 itself), so a step that must recompute it -- after a projection -- still
+    holds one copy of the vector field instead of two (compile time and the size of
+    the program, which is also what loading it from the cache costs)."""
     tab = self.tableau
     n = len(tab.c)
     A = np.zeros((n, n))
     for i, ai in enumerate(tab.a):
         A[i, : len(ai)] = ai
     A, c = jnp.asarray(A), jnp.asarray(tab.c)
+    first = 0 if f0 is None else 1
+    if f0 is None:
+        f0 = jax.eval_shape(lambda: terms.vf(t0, y0, args))
+        f0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), f0)
     ks0 = jtu.tree_map(lambda k: jnp.zeros((n,) + k.shape, k.dtype).at[0].set(k), f0)
 
     def body(carry, i):
         ks, _, _ = carry
         sigma_i = jtu.tree_map(lambda K: h * jnp.tensordot(A[i], K, axes=1), ks)
         y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
+        if first == 0:  # stage 0 at y0 exactly (not y0 retracted by a zero sigma)
+            y_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), y0, y_i)
         f_i = terms.vf(t0 + c[i] * h, y_i, args)
         k_i = _map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_i)
+        if first == 0:  # k_1 = dexpinv_0(f0) = f0
+            k_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), f_i, k_i)
         ks = jtu.tree_map(lambda K, k: K.at[i].set(k), ks, k_i)
         return (ks, f_i, sigma_i), None
 
     init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0))
-    (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(1, n))
+    (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(first, n))
     return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last
 
 
@@ -229,7 +241,11 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
-        if tab.fsal and self.jumps:
+        if self.scan_stages and made_jump is True:
+            # every step starts anew (ProjectedSolver says so with a literal True): the
+            # scan evaluates the first stage too
+            f0 = None
+        elif tab.fsal and self.jumps:
             # made_jump is one flag, or one per member in a lock-step batch
             # (nhjax.integrate.lockstep, batch axis last): recompute where a member jumped
             f0 = jax.lax.cond(
@@ -244,6 +260,7 @@ class _AbstractRKMK(diffrax.AbstractSolver):
             f0 = terms.vf(t0, y0, args)
         if self.scan_stages:
             ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0)
+            f0 = ks[0]
         else:
             ks = [f0]  # k_1 = dexpinv_0(f0) = f0
             f_last, sigma_last = f0, None
