@@ -19,10 +19,15 @@ that fingerprints everything the tracing depended on:
 
 Whatever the fingerprint cannot vouch for (an object it does not know how to read,
 a global that is neither data, module, function nor class) makes the call
-uncacheable: it is then traced as usual, so a stale program is never used. The
-program found on disk is called through ``jax.export`` (its compilation comes from
-JAX's persistent cache). Only calls made on concrete values use this path; under
-an outer ``jax.jit`` or ``jax.grad`` nothing changes.
+uncacheable: it is then traced as usual, so a stale program is never used. Beside
+each program its compiled executable is kept (``*.exe``: XLA's serialized
+executable, under the program's key plus the machine's: jaxlib's XLA, XLA_FLAGS, the
+CPU's instruction sets, the compiler options), so a warm process loads that directly
+instead of deserializing, lowering and looking the program up in JAX's cache (about
+0.15 s of a warm first ``simulate()``); without it the program is called through
+``jax.export`` and compiled (or found in JAX's persistent cache). Only calls made
+on concrete values use this path; under an outer ``jax.jit`` or ``jax.grad``
+nothing changes.
 
 Files live in ``<compilation cache>/nhjax-programs`` (``NHJAX_CACHE_DIR``; ``=0``
 turns both caches off), capped at ``MAX_BYTES`` (oldest files go first).
@@ -55,8 +60,9 @@ LIBRARIES = ("nhjax", "controls", "jax", "jaxlib", "diffrax", "equinox", "optimi
              "numpy", "builtins", "functools", "operator", "math", "typing", "abc", "lax")
 _PACKAGES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "numpy")
 
-#: Counters the tests read: programs loaded from disk, traced and stored, uncacheable calls.
-STATS = {"loaded": 0, "stored": 0, "uncacheable": 0}
+#: Counters the tests read: programs loaded from disk (``loaded``; executables among
+#: them: ``executables``), traced and stored, uncacheable calls.
+STATS = {"loaded": 0, "stored": 0, "uncacheable": 0, "executables": 0}
 _MEMORY: dict[str, Callable] = {}
 _LOCK = threading.Lock()
 
@@ -90,6 +96,29 @@ def _environment() -> str:
         h.update(f"{name}={getattr(jax.config, name, None)};".encode())
     h.update(str(jax.default_backend()).encode())
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=1)
+def _machine() -> str:
+    """What a compiled executable depends on beyond its program: the XLA inside jaxlib,
+    XLA_FLAGS, and the CPU's instruction sets (code compiled for AVX-512 must not be
+    loaded on a CPU without it, e.g. from a cache directory shared across a cluster)."""
+    h = hashlib.sha256()
+    try:
+        h.update(str(jax.devices()[0].client.platform_version).encode())
+    except Exception:  # noqa: BLE001 - no backend information: the versions still count
+        pass
+    h.update(os.environ.get("XLA_FLAGS", "").encode())
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
+    except OSError:
+        import platform
+
+        flags = f"{platform.machine()}:{platform.processor()}"
+    h.update(" ".join(sorted(flags.split())).encode())
+    return h.hexdigest()[:24]
 
 
 def _is_library(module: str | None) -> bool:
@@ -229,7 +258,7 @@ def _store(path: Path, data: bytes):
     tmp = path.with_suffix(f".tmp{os.getpid()}")
     tmp.write_bytes(data)
     os.replace(tmp, path)
-    files = sorted(path.parent.glob("*.prog"), key=lambda p: p.stat().st_mtime)
+    files = sorted([*path.parent.glob("*.prog"), *path.parent.glob("*.exe")], key=lambda p: p.stat().st_mtime)
     total = sum(p.stat().st_size for p in files)
     while files and total > MAX_BYTES:
         oldest = files.pop(0)
@@ -237,19 +266,25 @@ def _store(path: Path, data: bytes):
         oldest.unlink(missing_ok=True)
 
 
-def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
-    """(caller, exported, output treedef) of ``fn`` on ``args``'s structure, from memory,
-    disk or a new export; None when it cannot be cached."""
+def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None, compiler_options=None):
+    """(compiled caller, output treedef) of ``fn`` on ``args``'s structure, from memory,
+    disk (its executable, or its program compiled) or a new export; None when it cannot
+    be cached."""
     folder = directory()
     if folder is None or jax.config.jax_disable_jit:
         return None
+    options = dict(compiler_options or {})
     quick = _quick_key(name, fn, args, error_mode)
+    if quick is not None and options:
+        quick = quick + (tuple(sorted(options.items())),)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
     if program is not None:
         return None if program is _FAILED else program
     try:
         key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
+        if options:
+            key += "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
     except Uncacheable:
         STATS["uncacheable"] += 1
         if quick is not None:
@@ -259,12 +294,18 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     with _LOCK:
         program = _MEMORY.get(key)
     if program is None:
-        dyn, static = eqx.partition(args, eqx.is_array)
-        leaves, dyn_def = jtu.tree_flatten(dyn)
-        path = folder / f"{key}.prog"
-        program = _load(path)
+        exe_path = folder / f"{key}-{_machine()}.exe"
+        program = _load_executable(exe_path)
         if program is None:
-            program = _export(fn, static, dyn_def, leaves, path)
+            dyn, static = eqx.partition(args, eqx.is_array)
+            leaves, dyn_def = jtu.tree_flatten(dyn)
+            path = folder / f"{key}.prog"
+            program = _load(path)
+            if program is None:
+                program = _export(fn, static, dyn_def, leaves, path)
+            if program is not _FAILED:
+                specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
+                program = _compile(program, specs, options, exe_path)
     with _LOCK:
         _MEMORY[key] = program
         if quick is not None:
@@ -295,21 +336,10 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
     ``args``'s structure, compiled with ``compiler_options`` (options this XLA does not
     know are dropped), its program from the program cache; None when it cannot be
     cached (then compile as usual)."""
-    program = _program(name, fn, args)
+    program = _program(name, fn, args, compiler_options=compiler_options)
     if program is None:
         return None
-    _, exported, out_def = program
-    specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in _inputs(args)]
-    lowered = jax.jit(exported.call).lower(*specs)
-    options = dict(compiler_options or {})
-    while True:
-        try:
-            exe = lowered.compile(compiler_options=options)
-            break
-        except Exception:  # noqa: BLE001 - an option this XLA does not have
-            if not options:
-                raise
-            options.pop(next(reversed(options)))
+    exe, out_def = program
 
     def run(*a):
         return jtu.tree_unflatten(out_def, exe(*_inputs(a)))
@@ -328,7 +358,7 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
     program = _program(name, fn, args, error_mode)
     if program is None:
         return eqx.filter_jit(fn)(*args)
-    caller, _, out_def = program
+    caller, out_def = program
     return jtu.tree_unflatten(out_def, caller(*_inputs(args)))
 
 
@@ -346,7 +376,52 @@ def _load(path: Path):
     except Exception:  # a damaged or foreign file: trace again (and overwrite it)
         return None
     STATS["loaded"] += 1
-    return jax.jit(exported.call), exported, head
+    return exported, head
+
+
+def _compile(program, specs, options: dict, exe_path: Path):
+    """The exported program compiled (with ``options``; those this XLA does not know are
+    dropped) and its executable stored at ``exe_path``: (executable, out treedef)."""
+    exported, out_def = program
+    lowered = jax.jit(exported.call).lower(*specs)
+    options = dict(options)
+    while True:
+        try:
+            exe = lowered.compile(compiler_options=options or None)
+            break
+        except Exception:  # noqa: BLE001 - an option this XLA does not have
+            if not options:
+                raise
+            options.pop(next(reversed(options)))
+    try:
+        from jax.experimental import serialize_executable
+
+        payload, in_tree, out_tree = serialize_executable.serialize(exe)
+        examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
+        _store(exe_path, pickle.dumps((out_def, examples, payload)))
+    except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
+        pass
+    return exe, out_def
+
+
+def _load_executable(path: Path):
+    """(executable, out treedef) stored at ``path``, or None (absent, damaged, or one
+    this jaxlib cannot load: the program is compiled again)."""
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        from jax.experimental import serialize_executable
+
+        out_def, examples, payload = pickle.loads(blob)
+        in_tree, out_tree = (jtu.tree_structure(e) for e in examples)
+        exe = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # noqa: BLE001
+        return None
+    STATS["loaded"] += 1
+    STATS["executables"] += 1
+    return exe, out_def
 
 
 def _export(fn, static, dyn_def, leaves, path: Path):
@@ -368,4 +443,4 @@ def _export(fn, static, dyn_def, leaves, path: Path):
         STATS["stored"] += 1
     except (OSError, pickle.PicklingError, TypeError, ImportError):
         pass  # read-only cache, an output structure that does not pickle: keep it in memory
-    return jax.jit(exported.call), exported, box["out_def"]
+    return exported, box["out_def"]

@@ -99,6 +99,29 @@ def test_cached_call_equals_plain_jit(tmp_path, monkeypatch):
     np.testing.assert_array_equal(out["y"], eqx.filter_jit(fn)(p, x)["y"])
 
 
+def test_a_damaged_executable_is_compiled_again(tmp_path, monkeypatch):
+    """A stored executable that does not load (damaged, or from another jaxlib) is
+    ignored: the program is compiled again from its stored trace, with the same results."""
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    fn = _user_function("def g(x):\n    return {'y': jnp.cos(x) * x}\n", "g")
+    x = jnp.array([0.25, -1.5, 3.0])
+    first = _programs.call("test-exe", fn, (x,))
+    exes = list(tmp_path.glob("*.exe"))
+    assert len(exes) == 1
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    n_exe = _programs.STATS["executables"]
+    again = _programs.call("test-exe", fn, (x,))  # the stored executable, loaded
+    assert _programs.STATS["executables"] == n_exe + 1
+    np.testing.assert_array_equal(again["y"], first["y"])
+    exes[0].write_bytes(b"not an executable")
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    loaded = _programs.STATS["loaded"]
+    third = _programs.call("test-exe", fn, (x,))
+    assert _programs.STATS["executables"] == n_exe + 1 and _programs.STATS["loaded"] == loaded + 1  # the .prog
+    np.testing.assert_array_equal(third["y"], first["y"])
+
+
 _CHILD = """
 import json, sys, importlib
 import numpy as np, jax, nhjax
@@ -132,6 +155,7 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     assert first["stats"]["stored"] >= 4  # report, solve, diagnostics, batch chunk
     assert second["traces"] == 0 and second["batch_traces"] == 0
     assert second["stats"]["loaded"] >= 4 and second["stats"]["stored"] == 0
+    assert second["stats"]["executables"] >= 4  # compiled code loaded as it is: no lowering, no compile
     assert second["xs"] == first["xs"] and second["drift"] == first["drift"]
     assert second["batch"] == first["batch"] and second["steps"] == first["steps"]
     assert len(set(first["steps"])) > 1  # members of different lengths
