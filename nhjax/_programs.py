@@ -385,6 +385,8 @@ def _compile(program, specs, options: dict, exe_path: Path):
     exported, out_def = program
     lowered = jax.jit(exported.call).lower(*specs)
     options = dict(options)
+    _watch_cache_hits()
+    _HITS.count = 0
     while True:
         try:
             exe = lowered.compile(compiler_options=options or None)
@@ -393,6 +395,10 @@ def _compile(program, specs, options: dict, exe_path: Path):
             if not options:
                 raise
             options.pop(next(reversed(options)))
+    if _HITS.count:
+        # JAX's persistent cache had it: an executable loaded from there serializes
+        # into one that misses kernels when loaded again (jaxlib 0.10), so keep none
+        return exe, out_def
     try:
         from jax.experimental import serialize_executable
 
@@ -402,6 +408,36 @@ def _compile(program, specs, options: dict, exe_path: Path):
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
     return exe, out_def
+
+
+_HITS = threading.local()  # JAX persistent-cache hits of this thread's current compile
+
+
+@functools.lru_cache(maxsize=1)
+def _watch_cache_hits():
+    """Count JAX's persistent-cache hits per thread (its monitoring events are recorded
+    in the thread that compiles)."""
+
+    def listener(event, **kwargs):
+        if event == "/jax/compilation_cache/cache_hits":
+            _HITS.count = getattr(_HITS, "count", 0) + 1
+
+    jax.monitoring.register_event_listener(listener)
+
+
+@functools.lru_cache(maxsize=1)
+def _initialize_lapack():
+    """jaxlib's LAPACK kernels look their routines up when a program using them is
+    first lowered; a loaded executable is never lowered, and calling its LAPACK
+    kernels uninitialized crashes the process. Initialize them as lowering does."""
+    try:
+        from jax._src.lax import linalg
+
+        linalg.initialize_lapack()
+    except Exception:  # noqa: BLE001 - another jax: lower a small LAPACK call instead
+        import jax.numpy as jnp
+
+        jax.jit(jnp.linalg.solve).lower(np.eye(2), np.ones(2))
 
 
 def _load_executable(path: Path):
@@ -416,6 +452,7 @@ def _load_executable(path: Path):
 
         out_def, examples, payload = pickle.loads(blob)
         in_tree, out_tree = (jtu.tree_structure(e) for e in examples)
+        _initialize_lapack()
         exe = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
     except Exception:  # noqa: BLE001
         return None

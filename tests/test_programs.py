@@ -143,7 +143,8 @@ print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), drift={k: float(v) for k, v
 def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     """Two fresh processes share a cache directory: the second traces no solve and no
     batch chunk, loads their programs, and returns the first one's trajectory,
-    diagnostics and batch members bit for bit."""
+    diagnostics and batch members bit for bit; so do two more after the stored
+    executables are deleted."""
     env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
 
     def run():
@@ -151,6 +152,16 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     first, second = run(), run()
+    # executables gone (an older cache, or evicted): compiled programs come from JAX's
+    # cache, whose executables must not be stored again (they would load broken)
+    exes = list((tmp_path / "nhjax-programs").glob("*.exe"))
+    for exe in exes:
+        exe.unlink()
+    third, fourth = run(), run()
+    for later in (third, fourth):
+        assert later["traces"] == 0 and later["xs"] == first["xs"] and later["batch"] == first["batch"]
+    # the programs JAX's cache kept (the solve, at least) were not stored again
+    assert len(list((tmp_path / "nhjax-programs").glob("*.exe"))) < len(exes)
     assert first["traces"] == 1 and first["batch_traces"] == 1
     assert first["stats"]["stored"] >= 4  # report, solve, diagnostics, batch chunk
     assert second["traces"] == 0 and second["batch_traces"] == 0
