@@ -275,7 +275,9 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
             return args[0].project(t, y)
 
         solver = ProjectedSolver(solver, project)
-        save_fn = project  # dense output between steps is projected too
+        # the saved states (dense output between steps) are projected too, after the
+        # loop, all at once (_finish): one copy of the projection in the program, and
+        # vectorized, instead of one in the save loop and one at an event
     if static.flat_work:
         inner = save_fn or _save_state
         save_fn = lambda t, y, args: _with_work(inner(t, y, args), static)  # noqa: E731
@@ -315,6 +317,15 @@ def _finish(system, control, x0, t0, sol, static: _Static):
         xs, work = ys
     else:
         xs, work = ys, None
+    if static.project_steps:  # saved states onto the constraints (rows never reached stay inf)
+        def onto(t, x):
+            reached = jnp.isfinite(t)
+            # unreached rows are projected from x0 (finite: no NaN in a derivative) and dropped
+            safe = jtu.tree_map(lambda a, b: jnp.where(reached, a, b), x, x0)
+            p = system.project(jnp.where(reached, t, t0), safe)
+            return jtu.tree_map(lambda a, b: jnp.where(reached, a, b), p, x)
+
+        xs = jax.vmap(onto)(ts_saved, xs)
 
     invariants, drift, constraint_drift, us = {}, {}, {}, None
     if static.diagnostics:
