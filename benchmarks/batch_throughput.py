@@ -132,9 +132,9 @@ def single(cat, ctrl, x0, t1, case):
     )
 
 
-#: Fresh processes the single-trajectory timing runs in: its time varies from process
-#: to process on this kind of machine (0.07-0.13 ms on defaults in one afternoon, the
-#: same program), more than within one: the median process is reported, all are kept.
+#: Fresh processes the single-trajectory timing runs in: on this kind of machine the
+#: same jitted program's time varies more from one process to the next than within
+#: one, so the median process is reported and all are kept in the JSON.
 SINGLE_PROCESSES = 5
 
 
