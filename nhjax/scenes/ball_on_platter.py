@@ -108,8 +108,10 @@ class BallOnPlatter(ConstrainedLagrangian):
     Omega: jax.Array
     g: jax.Array
     n: int = eqx.field(static=True, default=7)
-    # stages unrolled: 10.3 ms per 10 s run against 13.4 ms scanned (compile 6.8 s vs 4.6 s)
-    large_vector_field: ClassVar[bool] = False
+    # Runge-Kutta stages in a scan: a program about a third smaller than with unrolled
+    # stages (a first simulate() compiles and a warm one loads that much less), for a
+    # little more time per step (benchmarks/compile_times.py)
+    large_vector_field: ClassVar[bool] = True
 
     state_names: ClassVar[tuple] = UP_STATE_NAMES
     control_dim: ClassVar[int] = 0
