@@ -35,6 +35,7 @@ turns both caches off), capped at ``MAX_BYTES`` (oldest files go first).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import functools
@@ -461,6 +462,33 @@ def _load_executable(path: Path):
     return exe, out_def
 
 
+_GC_PAUSES = [0]
+
+
+@contextlib.contextmanager
+def _gc_paused():
+    """Python's cycle collector off while a program is traced: tracing allocates
+    millions of short-lived objects, and the full collections they trigger walk every
+    live object of the process (JAX's and the user's) again and again. Nothing is
+    lost: reference counting frees as usual, and cycles are collected once the
+    collector is back on (after the last of concurrent traces)."""
+    import gc
+
+    with _LOCK:
+        _GC_PAUSES[0] += 1
+        was = gc.isenabled() if _GC_PAUSES[0] == 1 else None
+        if _GC_PAUSES[0] == 1:
+            _GC_PAUSES.append(was)
+            gc.disable()
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _GC_PAUSES[0] -= 1
+            if _GC_PAUSES[0] == 0 and _GC_PAUSES.pop():
+                gc.enable()
+
+
 def _export(fn, static, dyn_def, leaves, path: Path):
     box = {}
 
@@ -471,7 +499,8 @@ def _export(fn, static, dyn_def, leaves, path: Path):
 
     specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
     try:
-        exported = jax.export.export(jax.jit(flat))(*specs)
+        with _gc_paused():
+            exported = jax.export.export(jax.jit(flat))(*specs)
     except Exception:  # noqa: BLE001 - the plain path re-raises a user's own error
         STATS["uncacheable"] += 1
         return _FAILED

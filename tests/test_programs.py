@@ -171,3 +171,26 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     assert second["batch"] == first["batch"] and second["steps"] == first["steps"]
     assert len(set(first["steps"])) > 1  # members of different lengths
 
+
+
+def test_tracing_pauses_the_cycle_collector_and_restores_it(tmp_path, monkeypatch):
+    """The collector is off while a program is traced and back as it was afterwards (on,
+    or off if the user had turned it off)."""
+    import gc
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    seen = []
+    fn = _user_function("def h(x):\n    seen.append(gc.isenabled())\n    return {'y': 2 * x}\n", "h",
+                        seen=seen, gc=gc)
+    was = gc.isenabled()
+    try:
+        for state in (True, False):
+            (gc.enable if state else gc.disable)()
+            seen.clear()
+            monkeypatch.setattr(_programs, "_MEMORY", {})
+            _programs.call(f"test-gc-{state}", fn, (jnp.arange(3.0) + state,))
+            assert seen and not any(seen)  # traced with the collector off
+            assert gc.isenabled() is state
+    finally:
+        (gc.enable if was else gc.disable)()
