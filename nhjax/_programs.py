@@ -23,8 +23,8 @@ uncacheable: it is then traced as usual, so a stale program is never used. Besid
 each program its compiled executable is kept (``*.exe``: XLA's serialized
 executable, under the program's key plus the machine's: jaxlib's XLA, XLA_FLAGS, the
 CPU's instruction sets, the compiler options), so a warm process loads that directly
-instead of deserializing, lowering and looking the program up in JAX's cache (about
-0.15 s of a warm first ``simulate()``); without it the program is called through
+instead of deserializing, lowering and looking the program up in JAX's cache (a
+good part of a warm first ``simulate()``); without it the program is called through
 ``jax.export`` and compiled (or found in JAX's persistent cache). Only calls made
 on concrete values use this path; under an outer ``jax.jit`` or ``jax.grad``
 nothing changes.

@@ -260,7 +260,6 @@ class _AbstractRKMK(diffrax.AbstractSolver):
             f0 = terms.vf(t0, y0, args)
         if self.scan_stages:
             ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0)
-            f0 = ks[0]
         else:
             ks = [f0]  # k_1 = dexpinv_0(f0) = f0
             f_last, sigma_last = f0, None
