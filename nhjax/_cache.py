@@ -9,8 +9,10 @@ configured one already:
 * ``NHJAX_CACHE_DIR=0`` (or ``off``) leaves JAX's cache off;
 * default: ``$XDG_CACHE_HOME/nhjax/xla`` (``~/.cache/nhjax/xla``).
 
-Every program that took at least ``NHJAX_CACHE_MIN_SECONDS`` (default 0.1 s) to
-compile is kept (JAX's default of 1 s would skip most of a solve's programs), and
+Every program is kept, however fast it compiled (``NHJAX_CACHE_MIN_SECONDS``,
+default 0: JAX's default of 1 s would skip most of a solve's programs, and even the
+tiny programs of eager jax operations between compiled solves -- an optimizer's
+bookkeeping runs a hundred of them -- load from disk faster than they compile), and
 the directory is capped at ``NHJAX_CACHE_MAX_BYTES`` (default 2 GiB; JAX evicts the
 least recently used entries). JAX keys each entry by the program, the compiler
 options and flags and the jax/jaxlib versions, so a stale entry is never used.
@@ -24,7 +26,7 @@ import os
 
 import jax
 
-DEFAULT_MIN_SECONDS = 0.1
+DEFAULT_MIN_SECONDS = 0.0
 DEFAULT_MAX_BYTES = 2 * 2**30
 
 
