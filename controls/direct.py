@@ -172,18 +172,25 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
     reverse pass is ever compiled (optax.lbfgs's zoom search traces the solve again
     inside its own loop, which costs several times the compile time). A step whose
     curvature s.y is not positive resets the memory, keeping the direction a descent
-    direction; a trial that stops on a guard (infinite merit) is backtracked."""
+    direction; a trial that stops on a guard (infinite merit) is backtracked.
+
+    The vectors the search works on are numpy arrays on the host: each jax operation
+    outside a compiled program is a dispatch (and, in a new process, a program to
+    compile or load) of its own, for a few multiply-adds."""
+    z, grad, lo, hi = (np.asarray(a) for a in (z, grad, lo, hi))
     state = _LBFGS.init(z)
     for _ in range(max_inner):
         d, new_state = _direction(_LBFGS, grad, state, z)
+        d = np.asarray(d)
         slope = float(grad @ d)
         if not slope > 0:  # not a descent direction: restart from the gradient
             state = _LBFGS.init(z)
             d, new_state = _direction(_LBFGS, grad, state, z)
+            d = np.asarray(d)
             slope = float(grad @ d)
         eta, accepted = 1.0, False
         for _ in range(40):
-            z_new = jnp.clip(z - eta * d, lo, hi)
+            z_new = np.clip(z - eta * d, lo, hi)
             v_new, g_new, _ = _merit_and_grad(tr, z_new, lam, rho)
             v_new = float(v_new)
             if np.isfinite(v_new) and v_new <= value - 1e-4 * float(grad @ (z - z_new)):
@@ -192,10 +199,11 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
             eta *= 0.3 if not np.isfinite(v_new) else 0.5
         if not accepted:
             break
+        g_new = np.asarray(g_new)
         s_k, y_k = z_new - z, g_new - grad
         state = new_state if float(s_k @ y_k) > 0 else _LBFGS.init(z_new)
         prev, z, value, grad = value, z_new, v_new, g_new
-        gnorm = float(jnp.linalg.norm(grad))
+        gnorm = float(np.linalg.norm(grad))
         history["merit"].append(value)
         history["grad_norm"].append(gnorm)
         history["outer"].append(outer)
@@ -203,7 +211,7 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
             bar.inner(value, gnorm, eta)
         if gnorm < gtol or abs(prev - value) <= 1e-2 * ftol * max(1.0, abs(value)):
             break
-    return z
+    return jnp.asarray(z)
 
 
 @compiled
@@ -323,7 +331,7 @@ def solve_direct(
                 z = _first_order_inner(tr, opt, z, lam, rho_a, lo, hi, max_inner, ftol, gtol, history, outer,
                                        bar)
             Jc, c = _pieces(tr, z)
-            J, viol = float(Jc), float(jnp.max(jnp.abs(c))) if m else 0.0
+            J, viol = float(Jc), float(np.max(np.abs(np.asarray(c)))) if m else 0.0
             history["cost"].append(J)
             history["violation"].append(viol)
             bar.update(outer=outer, steps=len(history["merit"]), cost=J, violation=f"{viol:.1e}",
