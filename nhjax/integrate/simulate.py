@@ -264,7 +264,6 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
     else:
         y0 = x0
     term = LieODETerm(_vector_field(static), spaces)
-    save_fn = None
     if static.project_steps:
 
         def project(t, y, args):
@@ -278,13 +277,13 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
         # the saved states (dense output between steps) are projected too, after the
         # loop, all at once (_finish): one copy of the projection in the program, and
         # vectorized, instead of one in the save loop and one at an event
+    save_fn = _save_state
     if static.flat_work:
-        inner = save_fn or _save_state
-        save_fn = lambda t, y, args: _with_work(inner(t, y, args), static)  # noqa: E731
+        save_fn = lambda t, y, args: _with_work(_save_state(t, y, args), static)  # noqa: E731
     if static.ends_only:  # saveat=2: no interpolation inside the loop
-        sub = diffrax.SubSaveAt(t0=True, t1=True, fn=save_fn or _save_state)
+        sub = diffrax.SubSaveAt(t0=True, t1=True, fn=save_fn)
     else:
-        sub = diffrax.SubSaveAt(ts=ts, fn=save_fn or _save_state)
+        sub = diffrax.SubSaveAt(ts=ts, fn=save_fn)
 
     event = None
     if static.guard_names:
