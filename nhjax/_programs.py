@@ -58,8 +58,8 @@ MAX_BYTES = 256 * 2**20
 #: Modules whose classes and functions are identified by name (their code is covered
 #: by the versions and the source hash in the key).
 LIBRARIES = ("nhjax", "controls", "jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax",
-             "numpy", "builtins", "functools", "operator", "math", "typing", "abc", "lax")
-_PACKAGES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "numpy")
+             "optax", "numpy", "builtins", "functools", "operator", "math", "typing", "abc", "lax")
+_PACKAGES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "optax", "numpy")
 
 #: Counters the tests read: programs loaded from disk (``loaded``; executables among
 #: them: ``executables``), traced and stored, uncacheable calls.
@@ -215,6 +215,10 @@ class _Fingerprint:
             return f"fn:{name}"
         code = getattr(fn, "__code__", None)
         if code is None:
+            owner = getattr(fn, "__self__", None)  # a C method: tuple.__new__, np.ndarray.sum
+            where = owner.__module__ if isinstance(owner, type) else getattr(owner, "__name__", None)
+            if isinstance(fn, types.BuiltinFunctionType) and _is_library(where):
+                return f"builtin:{where}.{fn.__qualname__}"
             raise Uncacheable(f"cannot read the code of {name}")
         parts = [f"fn:{name}", _code(code, self)]
         globs = getattr(fn, "__globals__", {})
@@ -276,6 +280,8 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         return None
     options = dict(compiler_options or {})
     quick = _quick_key(name, fn, args, error_mode)
+    if quick is _TRACED:
+        return None
     if quick is not None and options:
         quick = quick + (tuple(sorted(options.items())),)
     with _LOCK:
@@ -317,8 +323,11 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
 def _quick_key(name, fn, args, error_mode=None):
     """The in-process key, as jax.jit's own cache has it: structure, shapes and dtypes,
     and the static values by hash (a global changed later in the same process is not
-    seen, exactly as by jax.jit). None if a static value is unhashable."""
+    seen, exactly as by jax.jit). None if a static value is unhashable; ``_TRACED`` if
+    an argument is traced (a call under an outer transformation: nothing to cache)."""
     leaves, treedef = jtu.tree_flatten(args)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return _TRACED
     desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
     key = ("quick", name, fn, treedef, desc, error_mode or _error_mode())
     try:
@@ -329,7 +338,9 @@ def _quick_key(name, fn, args, error_mode=None):
 
 
 def _inputs(args):
-    return jtu.tree_leaves(eqx.filter(args, eqx.is_array))
+    """The array leaves of ``args``, in the order of the program's inputs (those of
+    ``eqx.partition(args, eqx.is_array)``'s first part)."""
+    return [x for x in jtu.tree_leaves(args) if eqx.is_array(x)]
 
 
 def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None = None):
@@ -361,6 +372,33 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
         return eqx.filter_jit(fn)(*args)
     caller, out_def = program
     return jtu.tree_unflatten(out_def, caller(*_inputs(args)))
+
+
+_TRACED = object()  # the call is under an outer trace
+def _pickle_equinox_missing():
+    """Pickle equinox's MISSING sentinel (in the tree structure of every equinox module)
+    as a reference to the module's singleton: pickled by value it comes back as a new
+    object, and the structure no longer unflattens (``_portable`` guards the rest)."""
+    import copyreg
+
+    try:
+        from equinox._module import _flatten
+    except ImportError:  # another equinox: _portable keeps such structures in memory
+        return
+    if isinstance(getattr(_flatten, "MISSING", None), getattr(_flatten, "_Missing", ())):
+        copyreg.pickle(_flatten._Missing, lambda obj: "MISSING")
+
+
+_pickle_equinox_missing()
+
+
+def _portable(out_def) -> bool:
+    """Whether an output structure comes back equal from pickle (else its program is kept
+    in memory only: a new process could not rebuild its outputs)."""
+    try:
+        return pickle.loads(pickle.dumps(out_def)) == out_def
+    except Exception:  # noqa: BLE001
+        return False
 
 
 _FAILED = object()  # export refused this function (e.g. a host callback): trace as usual
@@ -396,16 +434,17 @@ def _compile(program, specs, options: dict, exe_path: Path):
             if not options:
                 raise
             options.pop(next(reversed(options)))
-    if _HITS.count:
+    if _HITS.count or not _portable(out_def):
         # JAX's persistent cache had it: an executable loaded from there serializes
-        # into one that misses kernels when loaded again (jaxlib 0.10), so keep none
+        # into one that misses kernels when loaded again (jaxlib 0.10), so keep none;
+        # nor one whose outputs a new process could not rebuild
         return exe, out_def
     try:
         from jax.experimental import serialize_executable
 
         payload, in_tree, out_tree = serialize_executable.serialize(exe)
         examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
-        _store(exe_path, pickle.dumps((out_def, examples, payload)))
+        _store(exe_path, pickle.dumps((out_def, examples, payload, _uses_lapack(exe))))
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
     return exe, out_def
@@ -424,6 +463,15 @@ def _watch_cache_hits():
             _HITS.count = getattr(_HITS, "count", 0) + 1
 
     jax.monitoring.register_event_listener(listener)
+
+
+def _uses_lapack(exe) -> bool:
+    """Whether a compiled program calls LAPACK (then ``_initialize_lapack`` must run
+    before it is loaded; otherwise a warm process need not import what that takes)."""
+    try:
+        return "lapack" in exe.as_text().lower()
+    except Exception:  # noqa: BLE001 - no text: assume it does
+        return True
 
 
 @functools.lru_cache(maxsize=1)
@@ -451,9 +499,10 @@ def _load_executable(path: Path):
     try:
         from jax.experimental import serialize_executable
 
-        out_def, examples, payload = pickle.loads(blob)
+        out_def, examples, payload, *lapack = pickle.loads(blob)
         in_tree, out_tree = (jtu.tree_structure(e) for e in examples)
-        _initialize_lapack()
+        if not lapack or lapack[0]:
+            _initialize_lapack()
         exe = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
     except Exception:  # noqa: BLE001
         return None
@@ -504,9 +553,11 @@ def _export(fn, static, dyn_def, leaves, path: Path):
     except Exception:  # noqa: BLE001 - the plain path re-raises a user's own error
         STATS["uncacheable"] += 1
         return _FAILED
+    if not _portable(box["out_def"]):
+        return exported, box["out_def"]  # kept in memory only
     try:
         _store(path, pickle.dumps((box["out_def"], bytes(exported.serialize()))))
         STATS["stored"] += 1
     except (OSError, pickle.PicklingError, TypeError, ImportError):
-        pass  # read-only cache, an output structure that does not pickle: keep it in memory
+        pass  # read-only cache: keep it in memory
     return exported, box["out_def"]
