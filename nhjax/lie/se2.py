@@ -12,12 +12,13 @@ omega = 0 and omega = pi.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
 from . import _series as S
 
 __all__ = ["Ad", "ad", "compose", "dexp", "dexpinv", "exp", "from_xytheta", "hat", "inverse", "log", "vee"]
 
-_J = jnp.array([[0.0, -1.0], [1.0, 0.0]])
+_J = np.array([[0.0, -1.0], [1.0, 0.0]])  # numpy: no program to compile at import
 
 
 def hat(xi):

@@ -116,7 +116,7 @@ __all__ = [
     "curvature_integral",
 ]
 
-_J2 = jnp.array([[0.0, -1.0], [1.0, 0.0]])
+_J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # numpy: no program to compile at import
 
 
 def _rot2(th):

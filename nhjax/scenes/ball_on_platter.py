@@ -63,6 +63,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ..errors import ParameterError
 from ..lie import so3
@@ -82,7 +83,7 @@ def baumgarte_gains(owner, gains):
     return tuple(float(positive(n, v, allow_zero=True, owner=owner, as_float=True, shape=(), what="Baumgarte gain [1/s]"))
                  for n, v in (("baumgarte[0]", a), ("baumgarte[1]", b)))
 
-E3 = jnp.array([0.0, 0.0, 1.0])
+E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
 
 
 def _vec(a):

@@ -79,7 +79,7 @@ __all__ = [
     "ShapeLoopTorque",
 ]
 
-E2 = jnp.array([0.0, 1.0, 0.0])
+E2 = np.array([0.0, 1.0, 0.0])  # numpy: no program to compile at import
 
 _CHART_HINT = (
     "Iwai's (theta, chi, psi) chart is singular at sin(theta) = 0, where the cat is "

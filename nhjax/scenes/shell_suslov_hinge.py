@@ -91,7 +91,7 @@ from .shell_with_top import (
 
 __all__ = ["ShellWithSuslovHinge", "ShellWithSuslovHingeZeroMomentum"]
 
-E3 = jnp.array([0.0, 0.0, 1.0])
+E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
 
 
 def _principal_moments(name, v, owner=""):

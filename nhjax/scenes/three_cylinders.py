@@ -109,7 +109,7 @@ MINIMAL_STATE_NAMES = ("x1", "x2", "theta", "phi", "psi1", "psi2",
 UP3_STATE_NAMES = tuple(f"{c}_{k}" for k in (1, 2, 3) for c in UP_STATE_NAMES[:7]) + tuple(
     f"{c}_{k}_dot" for k in (1, 2, 3) for c in UP_STATE_NAMES[:7])
 # "u1_1", ..., "p3_1" (body 1), ..., "p3_3" (body 3, the upper cylinder), then "u1_1_dot", ...
-E3 = jnp.array([0.0, 0.0, 1.0])
+E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
 
 
 def _params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps):
