@@ -115,8 +115,8 @@ def _control_cost_hessian(ocp, param, z):
 def _fd_hessian(sh, z, w, h):
     """Central differences of the gradient of w . (J, psi): 2 P reverse passes (vmapped)."""
     P = z.shape[0]
-    E = h * jnp.eye(P, dtype=z.dtype)
-    G = np.asarray(_lagrangian_gradients(sh, jnp.concatenate([z[None, :] + E, z[None, :] - E]), jnp.asarray(w)))
+    E = h * np.eye(P)
+    G = np.asarray(_lagrangian_gradients(sh, np.concatenate([z[None, :] + E, z[None, :] - E]), np.asarray(w)))
     H = (G[:P] - G[P:]) / (2 * h)
     return 0.5 * (H + H.T)
 
@@ -135,13 +135,13 @@ def _project(sh, z, y, D, Qi, tol, max_iter=10):
         G = A @ Qi @ A.T
         for _ in range(12):
             d = -Qi @ A.T @ np.linalg.solve(G + mu * np.eye(m), c)
-            y_try = _values(sh, z + jnp.asarray(d))
+            y_try = _values(sh, z + d)
             if np.all(np.isfinite(y_try)) and np.abs(y_try[1:]).sum() < np.abs(c).sum():
                 break
             mu = max(10.0 * mu, 1e-8 * np.abs(G).max())
         else:
             return z, y, D, False
-        z = z + jnp.asarray(d)
+        z = z + d
         y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
         mu *= 0.01
     return z, y, D, bool(np.abs(y[1:]).max() <= tol)
@@ -191,7 +191,9 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     check_parametrization(param, ocp, owner)
     check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, fd_step=fd_step,
                      max_iter=(max_iter, "int"))
-    z = check_guess("guess", guess, (param.size,), "parametrization")
+    # z and the iteration's algebra live on the host (numpy): an eager jax operation is a
+    # dispatch, and in a new process a program of its own
+    z = np.asarray(check_guess("guess", guess, (param.size,), "parametrization"), float)
     m, P = ocp.n_constraints, param.size
     if m == 0:
         raise ProblemError("solve_direct_newton needs terminal constraints; use controls.solve_direct")
@@ -250,7 +252,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             slope = (g + A.T @ lam) @ d
             alpha, accepted = 1.0, False
             for _ in range(20):
-                z_t = z + alpha * jnp.asarray(d)
+                z_t = z + alpha * d
                 y_t = _values(sh, z_t)
                 if np.all(np.isfinite(y_t)):
                     _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
@@ -267,6 +269,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             z, y, D = z_t, y_t, D_t
     finally:
         bar.finish(converged)
+    z = jnp.asarray(z)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,

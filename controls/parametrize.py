@@ -65,9 +65,8 @@ class Parametrization(eqx.Module):
 
     def fit(self, u_fn):
         """Least-squares parameters whose signal best matches u_fn(t) (shape (dim,))."""
-        ts = jnp.asarray(self.sample_times())
-        target = jax.vmap(u_fn)(ts)
-        return fit_samples(self, ts, target)
+        ts = self.sample_times()
+        return fit_samples(self, ts, jax.vmap(u_fn)(jnp.asarray(ts)))
 
     def _check(self, params):
         params = jnp.asarray(params)
@@ -80,16 +79,23 @@ class Parametrization(eqx.Module):
 
 
 @compiled
-def fit_samples(param, ts, us):
-    """Least-squares parameters of ``param`` whose signal matches the samples us (N, dim)
-    at the times ts (N,): one compiled program per parametrization structure."""
+def _fit_basis(param, ts):
+    """(basis, offset): the signal at the times ts (N,), flattened, is basis @ p + offset
+    (every parametrization here is linear in its parameters)."""
 
     def sig(p):
         return jax.vmap(lambda t: param.signal(p)(t, None))(ts).reshape(-1)
 
     p0 = jnp.zeros(param.size)
-    basis = jax.jacfwd(sig)(p0)
-    return jnp.linalg.lstsq(basis, jnp.reshape(us, -1) - sig(p0))[0]
+    return jax.jacfwd(sig)(p0), sig(p0)
+
+
+def fit_samples(param, ts, us):
+    """Least-squares parameters of ``param`` whose signal matches the samples us (N, dim)
+    at the times ts (N,): the basis from one compiled program per parametrization
+    structure, the small least-squares solve on the host (numpy's LAPACK)."""
+    basis, offset = (np.asarray(a) for a in _fit_basis(param, np.asarray(ts, float)))
+    return jnp.asarray(np.linalg.lstsq(basis, np.reshape(np.asarray(us, float), -1) - offset, rcond=None)[0])
 
 
 class PiecewiseConstant(Parametrization):

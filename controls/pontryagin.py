@@ -216,7 +216,8 @@ _extremal = compiled(_extremal_body)
 def _indirect(sh, z0, solver, max_steps, least_squares):
     """The whole indirect solve as one program: optimistix's root find (or least
     squares) on the shooting residual, then the extremal from the solution with its
-    cost, and the final residual (from the extremal's end for single shooting)."""
+    cost, the final residual (from the extremal's end for single shooting) and the
+    terminal constraints' violation max |psi(x(T))| there."""
     ocp = sh.ham.ocp
     n, m = ocp.x0.shape[0], ocp.n_constraints
     solve = optx.least_squares if least_squares else optx.root_find
@@ -228,7 +229,8 @@ def _indirect(sh, z0, solver, max_steps, least_squares):
         r = _terminal_residual(ocp, yT[:n], yT[n:], z[n:n + m])
     else:
         r = sh.residual(z)
-    return z, jnp.max(jnp.abs(r)), sol.stats["num_steps"], traj, us, cost
+    viol = jnp.max(jnp.abs(ocp.terminal(traj.xs[-1, :n])[1])) if m else jnp.zeros(())
+    return z, jnp.max(jnp.abs(r)), sol.stats["num_steps"], traj, us, cost, viol
 
 
 def solve_pontryagin(
@@ -274,21 +276,25 @@ def solve_pontryagin(
     ham = HamiltonianSystem(ocp, u_star)
     if p0_guess is not None and np.shape(p0_guess) != (n,) or nu_guess is not None and np.shape(nu_guess) != (m,):
         raise ProblemError(f"costate guess must have shape ({n},) and multiplier guess ({m},)")
-    p0 = jnp.zeros(n) if p0_guess is None else check_guess("p0_guess", p0_guess, (n,), "costate guess")
-    nu = jnp.zeros(m) if nu_guess is None else check_guess("nu_guess", nu_guess, (m,), "multiplier guess")
+    # host (numpy) bookkeeping: an eager jax operation is a program of its own in a new process
+    p0 = np.zeros(n) if p0_guess is None else np.asarray(
+        check_guess("p0_guess", p0_guess, (n,), "costate guess"), float)
+    nu = np.zeros(m) if nu_guess is None else np.asarray(
+        check_guess("nu_guess", nu_guess, (m,), "multiplier guess"), float)
     rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
     S = segments if shooting == "multiple" else 1
     sh = _Shooting(ham, rt, at, S)
-    z0 = jnp.concatenate([p0, nu])
+    z0 = np.concatenate([p0, nu])
     if S > 1:
-        guess = _shoot(ham, rt, at, saveat=S + 1, x0=ocp.x0, p0=p0).xs
-        z0 = jnp.concatenate([z0, guess[1:-1].reshape(-1)])
+        guess = np.asarray(_shoot(ham, rt, at, saveat=S + 1, x0=ocp.x0, p0=p0).xs)
+        z0 = np.concatenate([z0, guess[1:-1].reshape(-1)])
     bar = Progress(progress, 1, f"Pontryagin ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     converged = False
     try:
-        z, res, steps, traj, us, cost = _indirect(sh, z0, _root_solver(solver, tol), max_steps, solver == "lm")
-        res = float(res)
-        if not (bool(jnp.all(jnp.isfinite(z))) and np.isfinite(res)):
+        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, _root_solver(solver, tol), max_steps,
+                                                        solver == "lm")
+        z, res, viol = np.asarray(z), float(res), float(viol)
+        if not (np.all(np.isfinite(z)) and np.isfinite(res)):
             # say what is wrong with the start, if anything; else the iteration diverged
             _check_start(ham, sh, p0, nu, rt, at)
             raise ProblemError(
@@ -296,8 +302,6 @@ def solve_pontryagin(
                 "diverged to NaN/inf, from a finite start (a Newton step was too long); try solver='lm' "
                 "(damped steps), a closer p0_guess, or continuation from an easier problem")
         p0, nu = z[:n], z[n:n + m]
-        psi = ocp.terminal(traj.xs[-1, :n])[1]
-        viol = float(jnp.max(jnp.abs(psi))) if m else 0.0
         converged = bool(np.isfinite(res)) and res < 1e3 * tol
         bar.update(iterations=int(steps), cost=float(cost), violation=f"{viol:.1e}", residual=f"{res:.1e}")
     finally:

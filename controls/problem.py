@@ -15,8 +15,11 @@ array leaf of the pytree, so the solvers' compiled programs (``compiled`` below)
 take them as arguments and a solve with other values runs the same program
 (``TRACES`` counts the traces). The programs carry no host callbacks (equinox's
 runtime errors are traced as NaN outputs, which the solvers read as failures), so
-JAX's persistent compilation cache (``nhjax._cache``) keeps them for the next
-process.
+they can be kept for the next process: ``compiled`` takes them from nhjax's program
+cache (``nhjax._programs``), whose stored executables a new process loads without
+tracing, lowering or compiling. The solvers' own bookkeeping between those programs
+(iterates, multipliers, tests of convergence) is numpy on the host: an eager jax
+operation would be one more program to trace and look up in every new process.
 """
 
 from __future__ import annotations
@@ -36,6 +39,7 @@ import functools
 import numpy as np
 
 import nhjax
+from nhjax import _programs
 from nhjax import _validate as V
 from nhjax.errors import NhjaxError, ProblemError
 from nhjax.lie import Euclidean
@@ -82,7 +86,13 @@ def _clear_error_traces():
 
 
 def compiled(fn):
-    """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``."""
+    """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``.
+
+    Called on concrete values, the program comes from nhjax's program cache
+    (``nhjax._programs``): in a new process its compiled executable is loaded from disk
+    instead of tracing, lowering and compiling the solver's programs again, which is
+    most of a warm first answer. Under an outer trace, or when the arguments cannot be
+    fingerprinted, it is the plain ``eqx.filter_jit``."""
 
     @functools.wraps(fn)
     def counted(*args, **kwargs):  # runs only while tracing
@@ -95,9 +105,16 @@ def compiled(fn):
 
     jitted = eqx.filter_jit(counted)
 
+    name = f"{fn.__module__}.{fn.__qualname__}"
+
     @functools.wraps(fn)
     def call(*args, **kwargs):
         with nan_errors():
+            if not kwargs:
+                program = _programs._program(name, counted, args, error_mode="nan")
+                if program is not None:
+                    caller, out_def = program
+                    return jtu.tree_unflatten(out_def, caller(*_programs._inputs(args)))
             return jitted(*args, **kwargs)
 
     call.jitted = jitted
@@ -197,8 +214,8 @@ def check_parametrization(param, ocp, owner):
         )
     if V.is_traced(param.T, ocp.T):
         return
-    t0, T = float(getattr(param, "t0", 0.0)), float(param.T)
-    if t0 > 1e-12 * max(1.0, ocp.T) or t0 + T < ocp.T * (1 - 1e-12):
+    t0, T, horizon = float(getattr(param, "t0", 0.0)), float(param.T), float(ocp.T)
+    if t0 > 1e-12 * max(1.0, horizon) or t0 + T < horizon * (1 - 1e-12):
         raise ProblemError(
             f"{owner}: the parametrization covers [{t0:g}, {t0 + T:g}] but the problem's horizon is "
             f"[0, {float(ocp.T):g}]: build it with T = {float(ocp.T):g} (e.g. {type(param).__name__}(n, "
@@ -215,6 +232,11 @@ def check_guess(name, guess, shape, owner):
     if g.shape != tuple(shape):
         raise ProblemError(f"{name} has shape {g.shape}, the {owner} takes {tuple(shape)}")
     return g
+
+
+def _x0_numbers(system, x0):
+    """(max |residual| per constraint, value per chart guard) of the system at x0."""
+    return ({k: V._max_abs(v) for k, v in system.constraints(0.0, x0).items()}, dict(system.guards(x0)))
 
 
 class OCP(eqx.Module):
@@ -317,14 +339,16 @@ class OCP(eqx.Module):
                                    f"{V.nonfinite_components(self.system, self.x0)}; pass finite numbers")
             for part, sp, leaf in V._group_parts(self.system.spaces, self.x0):
                 V._check_group_value(part, sp, np.asarray(leaf), 1e-8, "OCP")
-        for name, res in self.system.constraints(0.0, self.x0).items():
-            r = float(jnp.max(jnp.abs(jnp.asarray(res)))) if jnp.size(res) else 0.0
+        # constraints and guards in one program (from the program cache in a new process)
+        constraints, guards = jax.device_get(_programs.call("ocp_x0", _x0_numbers, (self.system, self.x0)))
+        for name, r in constraints.items():
+            r = float(r)
             if not r <= 1e-8:
                 raise ProblemError(
                     f"OCP: x0 violates constraint '{name}' of {type(self.system).__name__}: |residual| = "
                     f"{r:.3e} > 1e-8; start from a consistent state (the scene's initial_state, or "
                     "system.project(0.0, x0))")
-        for name, g in self.system.guards(self.x0).items():
+        for name, g in guards.items():
             if not float(g) > 0:
                 raise ProblemError(
                     f"OCP: x0 is outside the chart of {type(self.system).__name__} (guard '{name}' = "

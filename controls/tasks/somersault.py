@@ -44,7 +44,7 @@ from ..parametrize import Chebyshev
 from ..pontryagin import IndirectResult, pmp_residual, solve_pontryagin
 from nhjax import _validate as V
 
-from ..problem import OCP, ProblemError, as_problem_error, rollout
+from ..problem import OCP, ProblemError, as_problem_error, compiled, rollout
 
 
 def _task_inputs(owner, cat, kind, theta0, turn, windings=None, chart=True):
@@ -107,8 +107,8 @@ def velocity_somersault_chart(cat: FallingCatKinematic, theta0, turn, T, winding
     """Chart problem: x = (theta, chi, psi), x0 = (theta0, 0, 0); at T: theta = theta0,
     chi = 2 pi windings, psi = turn."""
     _task_inputs("velocity_somersault_chart", cat, FallingCatKinematic, theta0, turn, windings)
-    target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 2 * np.pi * windings, turn)])
-    return OCP(cat, jnp.stack([jnp.asarray(theta0, float), 0.0, 0.0]), T,
+    target = jnp.asarray(np.array([theta0, 2 * np.pi * windings, turn], float))
+    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0], float)), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
 
 
@@ -137,14 +137,18 @@ def fixed_theta_costates(cat: FallingCatKinematic, theta0, T, windings=1):
         p_psi = I1 c (lam s^2/D)' / f',   p_chi = f p_psi - 2 I1 (lam s^2/D) c,
     and the costates are constant; nu = p(T) (no terminal cost).
     """
-    c = 2 * np.pi * windings / T
-    g = lambda th: cat.lam * jnp.sin(th) ** 2 / cat.D(th)  # noqa: E731
-    dg = jax.grad(g)(jnp.asarray(theta0, float))
-    df = cat.curvature(theta0)
-    p_psi = cat.I1 * c * dg / df
-    p_chi = cat.f(theta0) * p_psi - 2 * cat.I1 * g(theta0) * c
-    p = jnp.stack([jnp.zeros(()), p_chi, p_psi])
+    p = _fixed_theta_costates(cat, np.asarray(theta0, float), np.asarray(2 * np.pi * windings / T, float))
     return p, p
+
+
+@compiled
+def _fixed_theta_costates(cat, theta0, c):
+    """p(0) of ``fixed_theta_costates`` for chi' = c [rad/s] (one program, not an eager
+    operation per term)."""
+    g = lambda th: cat.lam * jnp.sin(th) ** 2 / cat.D(th)  # noqa: E731
+    p_psi = cat.I1 * c * jax.grad(g)(theta0) / cat.curvature(theta0)
+    p_chi = cat.f(theta0) * p_psi - 2 * cat.I1 * g(theta0) * c
+    return jnp.stack([jnp.zeros(()), p_chi, p_psi])
 
 
 def loop_guess(param, theta0, T, winding):

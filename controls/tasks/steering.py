@@ -295,7 +295,7 @@ def linear_guess(ocp: OCP, param, rcond=1e-10, multipliers=False):
         raise ProblemError(f"the parametrization has {param.dim} inputs, the robot takes 3 torques")
     ts = jnp.asarray(param.sample_times())
     us, lam = _linear_control(ocp, ts, jnp.asarray(rcond, float))
-    p = _fit(param, ts, us)
+    p = fit_samples(param, ts, us)
     return (p, -2.0 * lam) if multipliers else p
 
 
@@ -320,8 +320,6 @@ def _linear_control(ocp, ts, rcond):
     lam = jnp.linalg.lstsq(C @ W @ C.T, -psi0, rcond=rcond)[0]
     return jax.vmap(lambda t: B.T @ jax.scipy.linalg.expm(A.T * (T - t)) @ (C.T @ lam))(ts), lam
 
-
-_fit = fit_samples  # one compiled least-squares fit per parametrization structure
 
 
 class _TorqueImpulseRate(eqx.Module):
