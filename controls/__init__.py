@@ -1,12 +1,15 @@
 """Optimal control on nhjax systems: direct (optax through differentiable
 simulations, single or multiple shooting, augmented Lagrangian) and indirect
-(Pontryagin, costate shooting on optimistix), a feasible-path Newton direct
-solver for small strongly-curved problems, with a residual check of the
+(Pontryagin, costate shooting on optimistix), SQP for single shooting (the
+default of solve_direct: damped-BFGS Hessians, exact constraint Jacobians,
+control bounds in its QP), a feasible-path Newton direct solver for small
+strongly-curved problems, with a residual check of the
 optimality conditions that applies to any solution."""
 
 from .direct import DirectResult, solve_direct
 from .newton import solve_direct_newton
 from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
+from .sqp import solve_direct_sqp
 from .pontryagin import HamiltonianSystem, IndirectResult, continuation, pmp_residual, solve_pontryagin
 from .problem import OCP, ProblemError, rollout
 
@@ -26,5 +29,6 @@ __all__ = [
     "rollout",
     "solve_direct",
     "solve_direct_newton",
+    "solve_direct_sqp",
     "solve_pontryagin",
 ]

@@ -153,12 +153,19 @@ def _merit_and_grad(tr, z, lam, rho):
 def _pieces(tr, z):
     """(cost, constraints) at z, from the one compiled program."""
     m = tr.ocp.n_constraints + (tr.segments - 1) * (tr.ocp.x0.shape[0] if tr.segments > 1 else 0)
-    return _merit_and_grad(tr, z, jnp.zeros(m), jnp.asarray(0.0, float))[2]
+    return _merit_and_grad(tr, z, np.zeros(m), np.asarray(0.0))[2]
 
 
 @compiled
 def _direction(opt, grad, state, z):
     return opt.update(grad, state, z)
+
+
+@compiled
+def _init(opt, z):
+    """An optax transformation's initial state (one program instead of an eager
+    operation per array of the state)."""
+    return opt.init(z)
 
 
 _LBFGS = optax.scale_by_lbfgs()
@@ -178,13 +185,13 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
     outside a compiled program is a dispatch (and, in a new process, a program to
     compile or load) of its own, for a few multiply-adds."""
     z, grad, lo, hi = (np.asarray(a) for a in (z, grad, lo, hi))
-    state = _LBFGS.init(z)
+    state = _init(_LBFGS, z)
     for _ in range(max_inner):
         d, new_state = _direction(_LBFGS, grad, state, z)
         d = np.asarray(d)
         slope = float(grad @ d)
         if not slope > 0:  # not a descent direction: restart from the gradient
-            state = _LBFGS.init(z)
+            state = _init(_LBFGS, z)
             d, new_state = _direction(_LBFGS, grad, state, z)
             d = np.asarray(d)
             slope = float(grad @ d)
@@ -201,7 +208,7 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
             break
         g_new = np.asarray(g_new)
         s_k, y_k = z_new - z, g_new - grad
-        state = new_state if float(s_k @ y_k) > 0 else _LBFGS.init(z_new)
+        state = new_state if float(s_k @ y_k) > 0 else _init(_LBFGS, z_new)
         prev, z, value, grad = value, z_new, v_new, g_new
         gnorm = float(np.linalg.norm(grad))
         history["merit"].append(value)
@@ -211,7 +218,7 @@ def _lbfgs_inner(tr, z, lam, rho, lo, hi, value, grad, max_inner, ftol, gtol, hi
             bar.inner(value, gnorm, eta)
         if gnorm < gtol or abs(prev - value) <= 1e-2 * ftol * max(1.0, abs(value)):
             break
-    return jnp.asarray(z)
+    return z
 
 
 @compiled
@@ -222,7 +229,7 @@ def _first_order_step(tr, opt, z, state, lam, rho, lo, hi):
 
 
 def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, history, outer, bar=None):
-    state, prev = opt.init(z), np.inf
+    state, prev = _init(opt, z), np.inf
     for _ in range(max_inner):
         z, state, val, gnorm = _first_order_step(tr, opt, z, state, lam, rho, lo, hi)
         val, gnorm = float(val), float(gnorm)
@@ -234,7 +241,7 @@ def _first_order_inner(tr, opt, z, lam, rho, lo, hi, max_inner, ftol, gtol, hist
         if gnorm < gtol or abs(prev - val) <= 1e-2 * ftol * max(1.0, abs(val)):
             break
         prev = val
-    return z
+    return np.asarray(z)
 
 
 def solve_direct(
@@ -244,7 +251,7 @@ def solve_direct(
     *,
     shooting: str = "single",
     segments: int = 8,
-    optimizer: str | optax.GradientTransformation = "lbfgs",
+    optimizer: str | optax.GradientTransformation = "auto",
     rtol: float = 1e-10,
     atol: float = 1e-10,
     ctol: float = 1e-8,
@@ -259,8 +266,12 @@ def solve_direct(
 
     guess : initial control parameters (default zeros); for multiple shooting the
         node states start on the simulated guess.
-    optimizer : "lbfgs", "adam", or an optax transformation (reuse one object across
-        calls: a new object compiles anew).
+    optimizer : "auto" (default: "sqp" for single shooting, "lbfgs" for multiple),
+        "sqp" (``controls.solve_direct_sqp``: SQP with damped-BFGS Hessians and the
+        exact constraint Jacobian, control bounds in its QP; single shooting; at most
+        ``max_inner`` iterations; ``max_outer`` and ``rho`` do not apply), "lbfgs"
+        (augmented Lagrangian with L-BFGS inner solves), "adam", or an optax
+        transformation (reuse one object across calls: a new object compiles anew).
     rtol, atol : tolerances of the simulations; ctol : constraint violation and ftol :
         relative cost change over an outer iteration, both needed to converge; gtol :
         gradient norm that ends an inner solve; rho : initial penalty.
@@ -282,23 +293,35 @@ def solve_direct(
     check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, ftol=ftol, gtol=gtol, rho=rho,
                      max_outer=(max_outer, "int"), max_inner=(max_inner, "int"),
                      segments=(segments, "int", 2 if shooting == "multiple" else 1))
+    if isinstance(optimizer, str) and optimizer == "auto":
+        optimizer = "sqp" if shooting == "single" else "lbfgs"
+    if isinstance(optimizer, str) and optimizer == "sqp":
+        if shooting != "single":
+            raise ProblemError("optimizer='sqp' is single shooting; use 'lbfgs' with shooting='multiple'")
+        from .sqp import solve_direct_sqp
+
+        return solve_direct_sqp(ocp, param, guess, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, ftol=ftol,
+                                max_iter=max_inner, progress=progress)
     t_start = time.perf_counter()
-    p0 = jnp.zeros(param.size) if guess is None else check_guess("guess", guess, (param.size,), "parametrization")
+    # the decision vector and the optimizer's bookkeeping live on the host (numpy): an
+    # eager jax operation costs a dispatch, and in a new process a program of its own
+    p0 = np.zeros(param.size) if guess is None else np.asarray(
+        check_guess("guess", guess, (param.size,), "parametrization"), float)
     S = segments if shooting == "multiple" else 1
     tr = _Transcription(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float), S)
     z = p0
     if S > 1:
         traj, _, _ = rollout(ocp, param.signal(p0), rtol=rtol, atol=atol, saveat=S + 1)
-        z = jnp.concatenate([p0, traj.xs[0][1:-1].reshape(-1)])
-    lo, hi = jnp.full(z.shape, -jnp.inf), jnp.full(z.shape, jnp.inf)
+        z = np.concatenate([p0, np.asarray(traj.xs[0])[1:-1].reshape(-1)])
+    lo, hi = np.full(z.shape, -np.inf), np.full(z.shape, np.inf)
     if ocp.u_lower is not None:
         plo, phi = param.param_bounds(ocp.u_lower, ocp.u_upper)
-        lo, hi = lo.at[: param.size].set(plo), hi.at[: param.size].set(phi)
-        z = jnp.clip(z, lo, hi)
+        lo[: param.size], hi[: param.size] = plo, phi
+        z = np.clip(z, lo, hi)
 
-    J0, c0 = _pieces(tr, z)
+    J0, c0 = (np.asarray(a) for a in _pieces(tr, z))
     for name, val in (("cost", J0), ("terminal constraints", c0)):
-        if not bool(jnp.all(jnp.isfinite(val))):
+        if not np.all(np.isfinite(val)):
             raise ProblemError(
                 f"the {name} is not finite at the initial guess (the guess may drive the "
                 "state out of its chart, e.g. through a singular configuration)"
@@ -306,12 +329,12 @@ def solve_direct(
     m = c0.shape[0]
     # gradient of J + w.c + |c|^2/2 for random weights w: finite and not zero unless the
     # cost and constraints are non-differentiable or do not depend on the parameters
-    w = jnp.asarray(np.random.default_rng(0).uniform(0.5, 1.5, m))
-    _check_differentiable(_merit_and_grad(tr, z, w, jnp.asarray(1.0, float))[1])
-    lam = jnp.zeros(m)
+    w = np.random.default_rng(0).uniform(0.5, 1.5, m)
+    _check_differentiable(np.asarray(_merit_and_grad(tr, z, w, np.asarray(1.0))[1]))
+    lam = np.zeros(m)
     if isinstance(optimizer, str):
         if optimizer not in ("lbfgs", "adam"):
-            raise ProblemError("optimizer must be 'lbfgs', 'adam' or an optax transformation")
+            raise ProblemError("optimizer must be 'auto', 'sqp', 'lbfgs', 'adam' or an optax transformation")
         opt = _ADAM if optimizer == "adam" else None
     else:
         opt = optimizer
@@ -319,10 +342,10 @@ def solve_direct(
     history = {"outer": [], "cost": [], "violation": [], "merit": [], "grad_norm": []}
     bar = Progress(progress, max_outer, "direct (augmented Lagrangian)")
     J_prev, viol_prev, converged, msg = np.inf, np.inf, False, "max_outer reached"
-    J, viol = float(J0), float(jnp.max(jnp.abs(c0))) if m else 0.0
+    J, viol = float(J0), float(np.max(np.abs(c0))) if m else 0.0
     try:
         for outer in range(1, max_outer + 1):
-            rho_a = jnp.asarray(rho, float)  # arrays: new values do not recompile
+            rho_a = np.asarray(rho, float)  # arrays: new values do not recompile
             if opt is None:
                 value, grad, _ = _merit_and_grad(tr, z, lam, rho_a)
                 z = _lbfgs_inner(tr, z, lam, rho_a, lo, hi, float(value), grad, max_inner, ftol, gtol,
@@ -330,8 +353,8 @@ def solve_direct(
             else:
                 z = _first_order_inner(tr, opt, z, lam, rho_a, lo, hi, max_inner, ftol, gtol, history, outer,
                                        bar)
-            Jc, c = _pieces(tr, z)
-            J, viol = float(Jc), float(np.max(np.abs(np.asarray(c)))) if m else 0.0
+            Jc, c = (np.asarray(a) for a in _pieces(tr, z))
+            J, viol = float(Jc), float(np.max(np.abs(c))) if m else 0.0
             history["cost"].append(J)
             history["violation"].append(viol)
             bar.update(outer=outer, steps=len(history["merit"]), cost=J, violation=f"{viol:.1e}",
@@ -354,8 +377,8 @@ def solve_direct(
             f"{min(history['violation']):.2e}): the target may be unreachable within the "
             "control bounds or the horizon"
         )
-    p = z[: param.size]
-    nodes = z[param.size:].reshape(S - 1, -1) if S > 1 else None
+    p = jnp.asarray(z[: param.size])
+    nodes = jnp.asarray(z[param.size:].reshape(S - 1, -1)) if S > 1 else None
     return DirectResult(
         params=p, control=param.signal(p), cost=J, violation=viol, multipliers=np.asarray(lam),
         iterations=len(history["merit"]), converged=converged, message=msg, history=history,
@@ -364,12 +387,12 @@ def solve_direct(
 
 
 def _check_differentiable(jac):
-    if not bool(jnp.all(jnp.isfinite(jac))):
+    if not np.all(np.isfinite(jac)):
         raise ProblemError(
             "the cost or the terminal constraints have a non-finite derivative at the initial "
             "guess: use differentiable (smooth) cost and constraint functions"
         )
-    if float(jnp.max(jnp.abs(jac))) == 0.0:
+    if float(np.max(np.abs(jac))) == 0.0:
         raise ProblemError(
             "neither the cost nor the constraints depend on the control parameters (zero "
             "gradient): they are constant, or not differentiable where it matters (e.g. "

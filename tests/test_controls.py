@@ -118,3 +118,52 @@ def test_bad_problems_are_named():
                            terminal_constraints=Target(jnp.array([1.0, 0.0])), u_lower=-1.0, u_upper=1.0)
     d = controls.solve_direct(bounded, controls.PiecewiseConstant(8, 1.0, 1), max_outer=8)
     assert not d.converged and "unreachable" in d.message
+
+
+def _hat_integrals(n, T):
+    """For the n + 1 hat functions of PiecewiseLinear(n, T): the mass matrix int phi_j
+    phi_k dt, int phi_k dt and int (T - t) phi_k dt, by 5-point Gauss-Legendre on each
+    interval (exact: the integrands are polynomials of degree <= 2 there)."""
+    xg, wg = np.polynomial.legendre.leggauss(5)
+    knots = np.linspace(0.0, T, n + 1)
+    M, w, r = np.zeros((n + 1, n + 1)), np.zeros(n + 1), np.zeros(n + 1)
+    for i in range(n):
+        a, b = knots[i], knots[i + 1]
+        t = a + 0.5 * (b - a) * (xg + 1.0)
+        q = 0.5 * (b - a) * wg
+        phi = np.zeros((n + 1, t.size))
+        phi[i], phi[i + 1] = (b - t) / (b - a), (t - a) / (b - a)
+        M += (phi * q) @ phi.T
+        w += phi @ q
+        r += phi @ (q * (T - t))
+    return M, w, r
+
+
+def test_sqp_with_control_bounds_meets_the_kkt_conditions_of_the_discretized_problem():
+    """Rest to x = 1 in 1 s with u <= 4 (the free optimum 6 - 12 t exceeds it early on),
+    controls piecewise linear (exact here): the problem in the 9 parameters is the QP
+    min p.M.p/2 s.t. int u = 0, int (T - t) u = 1, p <= 4. SQP (the default of
+    solve_direct) must return its solution: taking the bounds SQP holds active, the
+    equality-constrained QP solved in closed form gives the same parameters, nonnegative
+    bound multipliers, and the other parameters strictly inside (KKT: the optimum)."""
+    n, T, u_max = 8, 1.0, 4.0
+    ocp = controls.OCP(DoubleIntegrator(), jnp.zeros(2), T, running_cost=HalfSquare(),
+                       terminal_constraints=Target(jnp.array([1.0, 0.0])), u_lower=-10.0, u_upper=u_max)
+    d = controls.solve_direct(ocp, controls.PiecewiseLinear(n, T, 1), progress=False)
+    assert d.converged and d.violation < 1e-10, d.message
+    p = np.asarray(d.params)
+    assert p.max() <= u_max
+    active = p >= u_max - 1e-9
+    assert 0 < active.sum() < n  # the bound is active on some of the parameters
+    M, w, r = _hat_integrals(n, T)
+    E = np.vstack([w, r])
+    S = np.eye(n + 1)[active]
+    k, a = E.shape[0], S.shape[0]
+    K = np.block([[M, E.T, S.T], [E, np.zeros((k, k + a))], [S, np.zeros((a, k + a))]])
+    sol = np.linalg.solve(K, np.concatenate([np.zeros(n + 1), [0.0, 1.0], np.full(a, u_max)]))
+    p_kkt, mult = sol[: n + 1], sol[n + 1 + k:]
+    assert np.all(mult >= 0)  # M p + E^T nu + mu = 0, mu >= 0 for p <= u_max: the bounds push back
+    assert np.all(p_kkt[~active] < u_max)
+    np.testing.assert_allclose(p, p_kkt, atol=1e-8)
+    np.testing.assert_allclose(d.cost, 0.5 * p_kkt @ M @ p_kkt, rtol=1e-10)
+    assert d.cost > 6.0  # dearer than the unbounded optimum

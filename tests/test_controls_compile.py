@@ -10,6 +10,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import controls
 from controls import direct, pontryagin
@@ -119,17 +120,88 @@ def test_compiled_programs_have_no_host_callbacks():
     assert "callback" not in text
 
 
-def test_progress_line_ends_full_when_converged(capsys):
+@pytest.mark.parametrize("optimizer", ["sqp", "lbfgs"])
+def test_progress_line_ends_full_when_converged(capsys, optimizer):
     ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
     param = controls.PiecewiseLinear(4, 1.0, 1)
-    d = controls.solve_direct(ocp, param, progress=True)
+    d = controls.solve_direct(ocp, param, progress=True, optimizer=optimizer)
     err = capsys.readouterr().err
     last = err.replace("\r", "\n").strip().splitlines()[-1]
     assert d.converged and "100%" in last and "violation" in last, last
-    done = d.history["outer"][-1]
+    done = d.history["outer"][-1] if optimizer == "lbfgs" else len(d.history["cost"])
     assert f"{done}/{done}" in last  # the bar was shortened to the iterations used
-    d = controls.solve_direct(ocp, param, progress=True, max_outer=1)  # stops early: a short bar
+    # stops early (one outer iteration; or a violation tolerance no solve meets): a short bar
+    early = dict(max_outer=1) if optimizer == "lbfgs" else dict(max_inner=2, ctol=1e-300)
+    d = controls.solve_direct(ocp, param, progress=True, optimizer=optimizer, **early)
     last = capsys.readouterr().err.replace("\r", "\n").strip().splitlines()[-1]
     assert not d.converged and "not converged" in last, last
-    controls.solve_direct(ocp, param, progress=False)
+    controls.solve_direct(ocp, param, progress=False, optimizer=optimizer)
     assert capsys.readouterr().err == ""
+
+
+_CHILD = """
+import json
+import equinox as eqx, jax, jax.numpy as jnp, numpy as np
+import controls
+from controls.problem import TRACES
+from nhjax import _programs
+from nhjax.mechanics import AbstractSystem
+
+
+class Integrator(AbstractSystem):
+    control_dim = 1
+    state_names = ("q", "v")
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([x[1], u[0]])
+
+
+class Effort(eqx.Module):
+    def __call__(self, t, x, u):
+        return 0.5 * u @ u
+
+
+class Target(eqx.Module):
+    x: jax.Array
+
+    def __call__(self, x):
+        return x - self.x
+
+
+ocp = controls.OCP(Integrator(), jnp.zeros(2), 1.0, running_cost=Effort(),
+                   terminal_constraints=Target(jnp.array([1.0, 0.0])))
+param = controls.PiecewiseLinear(4, 1.0, 1)
+d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([1.0 - 2.0 * t])), progress=False)
+ind = controls.solve_pontryagin(ocp, progress=False)
+print(json.dumps(dict(direct=[d.cost, d.violation, np.asarray(d.params).tolist()],
+                      indirect=[ind.cost, ind.violation, np.asarray(ind.p0).tolist(),
+                                np.asarray(ind.trajectory.xs).tolist()],
+                      status=str(ind.trajectory.result), traces=sum(TRACES.values()), stats=_programs.STATS)))
+"""
+
+
+def test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them(tmp_path):
+    """solve_direct and solve_pontryagin in two fresh processes on one cache directory:
+    the second traces none of controls' programs (it loads their executables, among
+    them the Pontryagin solve, whose outputs hold equinox enumerations) and gives the
+    first one's optimum bit for bit; both reach the closed-form optimum."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    want = exact_cost((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
+    np.testing.assert_allclose(first["direct"][0], want, rtol=1e-8)
+    np.testing.assert_allclose(first["indirect"][0], want, rtol=1e-10)
+    assert first["traces"] >= 4  # merit and gradient, direction, fit, Pontryagin solve, ...
+    assert second["traces"] == 0, second
+    assert second["stats"]["executables"] >= 4 and second["stats"]["stored"] == 0
+    assert second["direct"] == first["direct"] and second["indirect"] == first["indirect"]
+    assert second["status"] == first["status"]
