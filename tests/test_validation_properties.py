@@ -263,6 +263,8 @@ PROBES = {
     "controls.solve_direct": lambda: controls.solve_direct(_ocp(), controls.PiecewiseLinear(4, 0.5, 1)),
     "controls.solve_direct_newton": lambda: controls.solve_direct_newton(
         _ocp(), controls.PiecewiseLinear(4, 1.0, 1), jnp.full(5, jnp.nan)),
+    "controls.solve_direct_sqp": lambda: controls.solve_direct_sqp(
+        _ocp(), controls.PiecewiseLinear(4, 1.0, 1), jnp.full(5, jnp.nan)),
     "controls.solve_pontryagin": lambda: controls.solve_pontryagin(_ocp(), p0_guess=jnp.array([np.inf, 0.0])),
     "controls.pmp_residual": lambda: controls.pmp_residual(_ocp(), lambda t, x: jnp.zeros(1), n_points=1),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
