@@ -14,8 +14,9 @@ that fingerprints everything the tracing depended on:
   since the versions of those libraries and the source of nhjax are in the key;
   anything else (a user's Lagrangian, a control written in a notebook) by its
   bytecode, its constants, its closure and the globals it refers to, recursively;
-* the versions of jax, jaxlib, diffrax, equinox, optimistix, lineax, numpy, the
-  hash of nhjax's own source files and the JAX settings that change a trace.
+* the versions of jax, jaxlib, diffrax, equinox, optimistix, lineax, optax, numpy,
+  the hash of nhjax's and controls' own source files and the JAX settings that
+  change a trace.
 
 Whatever the fingerprint cannot vouch for (an object it does not know how to read,
 a global that is neither data, module, function nor class) makes the call
@@ -88,15 +89,27 @@ def _environment() -> str:
             h.update(f"{pkg}={importlib.metadata.version(pkg)};".encode())
         except importlib.metadata.PackageNotFoundError:
             h.update(f"{pkg}=?;".encode())
-    root = Path(__file__).resolve().parent
-    for path in sorted(root.rglob("*.py")):
-        h.update(str(path.relative_to(root)).encode())
-        h.update(path.read_bytes())
+    for root in _source_roots():
+        for path in sorted(root.rglob("*.py")):
+            h.update(f"{root.name}/{path.relative_to(root)}".encode())
+            h.update(path.read_bytes())
     for name in ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
                  "jax_numpy_rank_promotion", "jax_default_prng_impl"):
         h.update(f"{name}={getattr(jax.config, name, None)};".encode())
     h.update(str(jax.default_backend()).encode())
     return h.hexdigest()
+
+
+def _source_roots() -> list[Path]:
+    """The folders of this project's packages whose functions the fingerprint identifies
+    by name (nhjax, and controls beside it when installed): their source is in the key."""
+    import importlib.util
+
+    roots = [Path(__file__).resolve().parent]
+    spec = importlib.util.find_spec("controls")
+    if spec is not None and spec.submodule_search_locations:
+        roots.append(Path(next(iter(spec.submodule_search_locations))).resolve())
+    return roots
 
 
 @functools.lru_cache(maxsize=1)

@@ -194,3 +194,26 @@ def test_tracing_pauses_the_cycle_collector_and_restores_it(tmp_path, monkeypatc
             assert gc.isenabled() is state
     finally:
         (gc.enable if was else gc.disable)()
+
+
+def test_the_key_covers_the_source_of_controls_too(tmp_path, monkeypatch):
+    """controls' functions are fingerprinted by name, so its source must be in the key:
+    an edit there (a solver's program changed) gives new keys."""
+    from pathlib import Path
+
+    import controls
+
+    assert Path(controls.__file__).resolve().parent in _programs._source_roots()
+    pkg = tmp_path / "controls"
+    pkg.mkdir()
+    (pkg / "solver.py").write_text("def step(x):\n    return x\n")
+    monkeypatch.setattr(_programs, "_source_roots", lambda: [pkg])
+    try:
+        _programs._environment.cache_clear()
+        before = _programs._environment()
+        (pkg / "solver.py").write_text("def step(x):\n    return 2 * x\n")
+        _programs._environment.cache_clear()
+        assert _programs._environment() != before
+    finally:
+        monkeypatch.undo()
+        _programs._environment.cache_clear()
