@@ -28,7 +28,8 @@ test_somersault_direct_and_pontryagin_agree, each timed after a first
   costates (the whole pipeline), and a single ``solve_pontryagin`` straight at
   -pi from the same costates;
 * direct: ``solve_direct`` with ``Chebyshev(10, T, 2)`` controls (single
-  shooting, augmented Lagrangian + L-BFGS) from the loop's controls.
+  shooting) from the loop's controls, on its defaults (SQP with damped-BFGS
+  Hessians) and with ``optimizer="lbfgs"`` (augmented Lagrangian + L-BFGS).
 
 Goals table (issue 16): each task's first answer in a fresh process ("cold":
 an empty temporary JAX cache directory via NHJAX_CACHE_DIR; "warm": a second
@@ -166,8 +167,11 @@ def ours_rows():
     param = controls.Chebyshev(10, T, 2)
     guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
 
-    def direct():
+    def direct():  # defaults: SQP
         return controls.solve_direct(ocp, param, guess, progress=False)
+
+    def direct_lbfgs():
+        return controls.solve_direct(ocp, param, guess, progress=False, optimizer="lbfgs")
 
     rows = []
     for name, method, fn in (
@@ -175,7 +179,9 @@ def ours_rows():
          pontryagin_chain),
         ("controls.solve_pontryagin", "one solve at -pi from the loop's costates, single shooting, Newton",
          pontryagin_single),
-        ("controls.solve_direct", "Chebyshev(10) controls, single shooting, aug. Lagrangian + L-BFGS", direct),
+        ("controls.solve_direct", "Chebyshev(10) controls, single shooting, defaults (SQP, damped BFGS)", direct),
+        ("controls.solve_direct", "Chebyshev(10) controls, single shooting, optimizer='lbfgs' (aug. Lagrangian)",
+         direct_lbfgs),
     ):
         t = time.perf_counter()
         try:

@@ -443,28 +443,32 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     if multipliers is not None:
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
     traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=2)
-    xT = traj.xs[0][-1]
+    xT = np.asarray(traj.xs[0])[-1]
     ham = HamiltonianSystem(ocp)
     rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
     adj = diffrax.RecursiveCheckpointAdjoint()
-    if multipliers is None:
+    if multipliers is None and m == 0:
+        nu = np.zeros(0)
+    elif multipliers is None:
         # dH/du along the fixed (x, u) is affine in nu (the costate equation is linear in
         # p and p(T) is affine in nu): its matrix from m + 1 sweeps of the one compiled
         # function, exact up to the integration tolerance
+        # (the small least-squares algebra in numpy on the host: no eager jax programs)
         def stationarity(nu):
-            return _costate_sweep(ham, control, xT, nu, rt, at, n_points, adj)[4].reshape(-1)
+            return np.asarray(_costate_sweep(ham, control, xT, nu, rt, at, n_points, adj)[4]).reshape(-1)
 
-        r0 = stationarity(jnp.zeros(m))
-        J = jnp.stack([stationarity(e) - r0 for e in jnp.eye(m)], axis=1)
-        nu = jnp.linalg.lstsq(J, -r0)[0]
+        r0 = stationarity(np.zeros(m))
+        J = np.stack([stationarity(e) - r0 for e in np.eye(m)], axis=1)
+        nu = np.linalg.lstsq(J, -r0, rcond=None)[0]
     else:
-        nu = jnp.asarray(multipliers, float)
-    ts, xs, ps, us, Hu, Lu, H, L = _costate_sweep(ham, control, xT, nu, rt, at, n_points, adj)
+        nu = np.asarray(multipliers, float)
+    ts, xs, ps, us, Hu, Lu, H, L = (np.asarray(a) for a in _costate_sweep(ham, control, xT, nu, rt, at,
+                                                                           n_points, adj))
     return {
-        "stationarity": float(jnp.max(jnp.abs(Hu)) / jnp.max(jnp.abs(Lu))),
-        "hamiltonian_variation": float((jnp.max(H) - jnp.min(H)) / jnp.max(jnp.abs(L))),
-        "multipliers": np.asarray(nu),
-        "ts": np.asarray(ts), "us": np.asarray(us), "ps": np.asarray(ps), "xs": np.asarray(xs),
+        "stationarity": float(np.max(np.abs(Hu)) / np.max(np.abs(Lu))),
+        "hamiltonian_variation": float((np.max(H) - np.min(H)) / np.max(np.abs(L))),
+        "multipliers": nu,
+        "ts": ts, "us": us, "ps": ps, "xs": xs,
     }
 
 

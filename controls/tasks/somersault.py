@@ -222,10 +222,10 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
         d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol,
                          progress=f"start winding {k:+d}" if progress else False, **direct_kw)
         traj, _, _ = rollout(ocp, d.control, rtol=rtol, atol=atol, saveat=n_check)
-        ws = traj.xs[0][:, :2]
+        ws = np.asarray(traj.xs[0])[:, :2]
         info = dict(start_winding=k, j=j, cost=d.cost, violation=d.violation, converged=d.converged,
                     iterations=d.iterations, winding=float(cat.winding(ws)),
-                    min_theta=float(jnp.min(jnp.linalg.norm(ws, axis=1))), seconds=d.seconds)
+                    min_theta=float(np.min(np.linalg.norm(ws, axis=1))), seconds=d.seconds)
         starts.append(info)
         if d.converged and (best is None or d.cost < best.cost):
             best, best_ocp, best_info = d, ocp, info

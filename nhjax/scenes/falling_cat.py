@@ -442,9 +442,11 @@ class FallingCatSmooth(_CatGeometry, AbstractSystem):
 
     @staticmethod
     def winding(ws):
-        """Number of turns of a path ws (N, 2) about the origin (chi's total advance / 2 pi)."""
-        ang = jnp.unwrap(jnp.arctan2(ws[:, 1], ws[:, 0]))
-        return (ang[-1] - ang[0]) / (2 * jnp.pi)
+        """Number of turns of a path ws (N, 2) about the origin (chi's total advance / 2 pi);
+        a numpy path is measured in numpy (no jax program)."""
+        xp = np if isinstance(ws, np.ndarray) else jnp
+        ang = xp.unwrap(xp.arctan2(ws[:, 1], ws[:, 0]))
+        return (ang[-1] - ang[0]) / (2 * np.pi)
 
 
 class FallingCatAttitudes(_CatGeometry, AbstractSystem):
