@@ -125,7 +125,7 @@ def test_tangents_differentiate_a_guards_event_time():
     assert abs(float(g_t)) > 0.01
 
 
-@pytest.mark.slow  # default runs cover "tangents", "vjp" (the cat, the robot) and auto's choice
+@pytest.mark.slow  # default runs cover "tangents", "vjp" (the cat; the robot in test_steering) and auto's choice
 def test_three_ways_of_forming_the_step_products_agree():
     """Chunked forward-mode Jacobians, chunked reverse-mode Jacobians (chunks that do not
     divide the step count) and one VJP per step."""
@@ -137,6 +137,9 @@ def test_three_ways_of_forming_the_step_products_agree():
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * float(np.max(np.abs(b))))
 
 
+# slow (~50 s on 2 cores); the default run keeps Lie-group gradients through test_steering's
+# shooting-gradient test (ShellWithTop, DiscreteAdjoint against central differences)
+@pytest.mark.slow
 def test_lie_group_state_gradient():
     """The spherical robot on R^2 x SO(3) x SO(3) (RKMK45): final position, top attitude
     and spin in the torque amplitudes and the initial top spin."""

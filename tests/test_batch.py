@@ -119,6 +119,9 @@ def test_lockstep_equals_vmapped_diffrax_and_saves_up_to_a_guard():
     np.testing.assert_allclose(lock.x_end, vm.x_end, rtol=1e-11, atol=1e-12)
 
 
+# slow (~45 s on 2 cores); the default run keeps group-valued batch members through
+# test_members_off_their_group_are_named_and_not_solved
+@pytest.mark.slow
 def test_group_valued_states_projection_jumps_and_other_solvers():
     """Per member the single result, where the lock-step path does something different:
     group-valued state parts (vmapped exp maps), a projection after every step, a
