@@ -62,7 +62,7 @@ def optimal_somersault(out="experiments/out", figures=True, theta0=0.6, T=2.0, t
     )
     print(f"  task: start and end bent by theta0 = {theta0} rad, turn by {turn:.6f} rad about e2 in T = {T} s")
     print(f"  optimizing from {len(start_windings)} starting loops (chi winding {start_windings}); "
-          "the first solve compiles (about a minute) ...", flush=True)
+          "the first solve compiles (seconds; a new process loads the compiled programs) ...", flush=True)
     r = somersault_free_winding(cat, theta0, turn, T, start_windings=start_windings)
     print("  start winding | target class j | cost [J s]       | violation | iterations | found winding | min theta | time [s]")
     for s in r.starts:
