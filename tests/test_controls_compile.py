@@ -140,35 +140,15 @@ def test_progress_line_ends_full_when_converged(capsys, optimizer):
 
 
 _CHILD = """
-import json
-import equinox as eqx, jax, jax.numpy as jnp, numpy as np
+import json, sys
+import jax.numpy as jnp, numpy as np
+sys.path.insert(0, {tests!r})
 import controls
 from controls.problem import TRACES
 from nhjax import _programs
-from nhjax.mechanics import AbstractSystem
+from test_controls import DoubleIntegrator, HalfSquare, Target
 
-
-class Integrator(AbstractSystem):
-    control_dim = 1
-    state_names = ("q", "v")
-
-    def vector_field(self, t, x, u):
-        return jnp.stack([x[1], u[0]])
-
-
-class Effort(eqx.Module):
-    def __call__(self, t, x, u):
-        return 0.5 * u @ u
-
-
-class Target(eqx.Module):
-    x: jax.Array
-
-    def __call__(self, x):
-        return x - self.x
-
-
-ocp = controls.OCP(Integrator(), jnp.zeros(2), 1.0, running_cost=Effort(),
+ocp = controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=HalfSquare(),
                    terminal_constraints=Target(jnp.array([1.0, 0.0])))
 param = controls.PiecewiseLinear(4, 1.0, 1)
 d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([1.0 - 2.0 * t])), progress=False)
@@ -193,7 +173,8 @@ def test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them(tmp_pa
     env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
 
     def run():
-        out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, check=True)
+        child = _CHILD.format(tests=os.path.dirname(os.path.abspath(__file__)))
+        out = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, env=env, check=True)
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     first, second = run(), run()
