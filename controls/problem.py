@@ -110,12 +110,9 @@ def compiled(fn):
     @functools.wraps(fn)
     def call(*args, **kwargs):
         with nan_errors():
-            if not kwargs:
-                program = _programs._program(name, counted, args, error_mode="nan")
-                if program is not None:
-                    caller, out_def = program
-                    return jtu.tree_unflatten(out_def, caller(*_programs._inputs(args)))
-            return jitted(*args, **kwargs)
+            if kwargs:
+                return jitted(*args, **kwargs)
+            return _programs.call(name, counted, args, error_mode="nan", fallback=jitted)
 
     call.jitted = jitted
     return call

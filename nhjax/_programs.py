@@ -372,17 +372,18 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
     return run
 
 
-def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None):
+def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fallback: Callable | None = None):
     """``fn(*args)`` (a jax-traceable function returning a pytree of arrays in builtin
     containers), with its traced program taken from / kept in the program cache.
 
-    Equivalent to ``eqx.filter_jit(fn)(*args)``; falls back to it when caching is off
-    or the arguments cannot be fingerprinted. ``error_mode``: the equinox error mode
+    Equivalent to ``eqx.filter_jit(fn)(*args)``; falls back to that (or to
+    ``fallback(*args)``, e.g. the caller's own jitted ``fn``) when caching is off or
+    the arguments cannot be fingerprinted. ``error_mode``: the equinox error mode
     ``fn`` sets for itself while traced (then the mode in force, which another thread
     may be changing, is not read)."""
     program = _program(name, fn, args, error_mode)
     if program is None:
-        return eqx.filter_jit(fn)(*args)
+        return (fallback or eqx.filter_jit(fn))(*args)
     caller, out_def = program
     return jtu.tree_unflatten(out_def, caller(*_inputs(args)))
 
