@@ -26,7 +26,9 @@ executable, under the program's key plus the machine's: jaxlib's XLA, XLA_FLAGS,
 CPU's instruction sets, the compiler options), so a warm process loads that directly
 instead of deserializing, lowering and looking the program up in JAX's cache (a
 good part of a warm first ``simulate()``); without it the program is called through
-``jax.export`` and compiled (or found in JAX's persistent cache). Only calls made
+``jax.export`` and compiled, with JAX's persistent cache off for that compile (an
+executable from there, or compiled after one in the same process, would be stored
+broken), and its executable stored. Only calls made
 on concrete values use this path; under an outer ``jax.jit`` or ``jax.grad``
 nothing changes.
 
@@ -442,16 +444,18 @@ def _compile(program, specs, options: dict, exe_path: Path):
     _HITS.count = 0
     while True:
         try:
-            exe = lowered.compile(compiler_options=options or None)
+            with _jax_cache_off():
+                exe = lowered.compile(compiler_options=options or None)
             break
         except Exception:  # noqa: BLE001 - an option this XLA does not have
             if not options:
                 raise
             options.pop(next(reversed(options)))
     if _HITS.count or not _portable(out_def):
-        # JAX's persistent cache had it: an executable loaded from there serializes
-        # into one that misses kernels when loaded again (jaxlib 0.10), so keep none;
-        # nor one whose outputs a new process could not rebuild
+        # JAX's persistent cache had it after all (another JAX keeps its switch
+        # elsewhere): an executable loaded from there serializes into one that misses
+        # kernels when loaded again (jaxlib 0.10), so keep none; nor one whose outputs a
+        # new process could not rebuild
         return exe, out_def
     try:
         from jax.experimental import serialize_executable
@@ -465,6 +469,38 @@ def _compile(program, specs, options: dict, exe_path: Path):
 
 
 _HITS = threading.local()  # JAX persistent-cache hits of this thread's current compile
+_JAX_CACHE_OFF = [0]
+
+
+@contextlib.contextmanager
+def _jax_cache_off():
+    """JAX's persistent cache switched off (for every thread) while a program whose
+    executable this module stores is compiled: an executable JAX's cache hands back,
+    and even one compiled afterwards in the same process, serializes into one that
+    misses kernels when loaded (jaxlib 0.10). Other threads' compiles meanwhile skip
+    JAX's cache: slower, never wrong."""
+    try:
+        from jax._src import compilation_cache as cc
+
+        cc.is_cache_used(jax.devices()[0].client)  # settles whether JAX's cache is on at all
+        usable = getattr(cc, "_cache_checked", False) and isinstance(getattr(cc, "_cache_used", None), bool)
+    except Exception:  # noqa: BLE001
+        usable = False
+    if not usable:
+        yield
+        return
+    with _LOCK:
+        _JAX_CACHE_OFF[0] += 1
+        if _JAX_CACHE_OFF[0] == 1:
+            _JAX_CACHE_OFF.append(cc._cache_used)
+            cc._cache_used = False
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _JAX_CACHE_OFF[0] -= 1
+            if _JAX_CACHE_OFF[0] == 0:
+                cc._cache_used = _JAX_CACHE_OFF.pop()
 
 
 @functools.lru_cache(maxsize=1)

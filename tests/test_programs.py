@@ -144,7 +144,8 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     """Two fresh processes share a cache directory: the second traces no solve and no
     batch chunk, loads their programs, and returns the first one's trajectory,
     diagnostics and batch members bit for bit; so do two more after the stored
-    executables are deleted."""
+    executables are deleted (the first of them stores them again, the second loads
+    them)."""
     env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
 
     def run():
@@ -152,16 +153,19 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     first, second = run(), run()
-    # executables gone (an older cache, or evicted): compiled programs come from JAX's
-    # cache, whose executables must not be stored again (they would load broken)
-    exes = list((tmp_path / "nhjax-programs").glob("*.exe"))
+    # executables gone (an older cache, or evicted) while the traces stay: the third
+    # process compiles each program again (JAX's cache off: an executable from there,
+    # or compiled after one in the same process, would load broken) and stores it, and
+    # the fourth loads them and must give the same results
+    exes = sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe"))
     for exe in exes:
-        exe.unlink()
+        (tmp_path / "nhjax-programs" / exe).unlink()
     third, fourth = run(), run()
     for later in (third, fourth):
         assert later["traces"] == 0 and later["xs"] == first["xs"] and later["batch"] == first["batch"]
-    # the programs JAX's cache kept (the solve, at least) were not stored again
-    assert len(list((tmp_path / "nhjax-programs").glob("*.exe"))) < len(exes)
+        assert later["steps"] == first["steps"] and later["drift"] == first["drift"]
+    assert sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe")) == exes
+    assert third["stats"]["executables"] == 0 and fourth["stats"]["executables"] >= 4
     assert first["traces"] == 1 and first["batch_traces"] == 1
     assert first["stats"]["stored"] >= 4  # report, solve, diagnostics, batch chunk
     assert second["traces"] == 0 and second["batch_traces"] == 0
