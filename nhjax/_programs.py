@@ -42,6 +42,7 @@ import contextlib
 import dataclasses
 import enum
 import functools
+import gc
 import hashlib
 import importlib.metadata
 import os
@@ -469,38 +470,27 @@ def _compile(program, specs, options: dict, exe_path: Path):
 
 
 _HITS = threading.local()  # JAX persistent-cache hits of this thread's current compile
-_JAX_CACHE_OFF = [0]
-
-
-@contextlib.contextmanager
 def _jax_cache_off():
     """JAX's persistent cache switched off (for every thread) while a program whose
     executable this module stores is compiled: an executable JAX's cache hands back,
     and even one compiled afterwards in the same process, serializes into one that
     misses kernels when loaded (jaxlib 0.10). Other threads' compiles meanwhile skip
     JAX's cache: slower, never wrong."""
+    switch = _jax_cache_switch()
+    return switch.off() if switch is not None else contextlib.nullcontext()
+
+
+@functools.lru_cache(maxsize=1)
+def _jax_cache_switch():
+    """JAX's persistent-cache switch as a _HeldOff (None if this JAX keeps it elsewhere)."""
     try:
         from jax._src import compilation_cache as cc
 
         cc.is_cache_used(jax.devices()[0].client)  # settles whether JAX's cache is on at all
         usable = getattr(cc, "_cache_checked", False) and isinstance(getattr(cc, "_cache_used", None), bool)
-    except Exception:  # noqa: BLE001
-        usable = False
-    if not usable:
-        yield
-        return
-    with _LOCK:
-        _JAX_CACHE_OFF[0] += 1
-        if _JAX_CACHE_OFF[0] == 1:
-            _JAX_CACHE_OFF.append(cc._cache_used)
-            cc._cache_used = False
-    try:
-        yield
-    finally:
-        with _LOCK:
-            _JAX_CACHE_OFF[0] -= 1
-            if _JAX_CACHE_OFF[0] == 0:
-                cc._cache_used = _JAX_CACHE_OFF.pop()
+    except Exception:  # noqa: BLE001 - another JAX: compile as it does
+        return None
+    return _HeldOff(lambda: cc._cache_used, lambda on: setattr(cc, "_cache_used", on)) if usable else None
 
 
 @functools.lru_cache(maxsize=1)
@@ -561,31 +551,39 @@ def _load_executable(path: Path):
     return exe, out_def
 
 
-_GC_PAUSES = [0]
+class _HeldOff:
+    """A process-wide on/off setting held off while any thread is inside ``off()``
+    (counted, so concurrent users nest) and restored as it was after the last one."""
+
+    def __init__(self, read: Callable[[], bool], write: Callable[[bool], None]):
+        self.read, self.write, self.depth, self.saved = read, write, 0, None
+
+    @contextlib.contextmanager
+    def off(self):
+        with _LOCK:
+            self.depth += 1
+            if self.depth == 1:
+                self.saved = self.read()
+                self.write(False)
+        try:
+            yield
+        finally:
+            with _LOCK:
+                self.depth -= 1
+                if self.depth == 0:
+                    self.write(self.saved)
 
 
-@contextlib.contextmanager
+_GC = _HeldOff(gc.isenabled, lambda on: gc.enable() if on else gc.disable())
+
+
 def _gc_paused():
     """Python's cycle collector off while a program is traced: tracing allocates
     millions of short-lived objects, and the full collections they trigger walk every
     live object of the process (JAX's and the user's) again and again. Nothing is
     lost: reference counting frees as usual, and cycles are collected once the
     collector is back on (after the last of concurrent traces)."""
-    import gc
-
-    with _LOCK:
-        _GC_PAUSES[0] += 1
-        was = gc.isenabled() if _GC_PAUSES[0] == 1 else None
-        if _GC_PAUSES[0] == 1:
-            _GC_PAUSES.append(was)
-            gc.disable()
-    try:
-        yield
-    finally:
-        with _LOCK:
-            _GC_PAUSES[0] -= 1
-            if _GC_PAUSES[0] == 0 and _GC_PAUSES.pop():
-                gc.enable()
+    return _GC.off()
 
 
 def _export(fn, static, dyn_def, leaves, path: Path):
