@@ -463,7 +463,8 @@ def _compile(program, specs, options: dict, exe_path: Path):
 
         payload, in_tree, out_tree = serialize_executable.serialize(exe)
         examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
-        _store(exe_path, pickle.dumps((out_def, examples, payload, _uses_lapack(exe))))
+        devices = [d.id for d in exe.runtime_executable().local_devices()]
+        _store(exe_path, pickle.dumps((out_def, examples, payload, _uses_lapack(exe), devices)))
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
     return exe, out_def
@@ -539,11 +540,15 @@ def _load_executable(path: Path):
     try:
         from jax.experimental import serialize_executable
 
-        out_def, examples, payload, *lapack = pickle.loads(blob)
+        out_def, examples, payload, lapack, device_ids = pickle.loads(blob)
         in_tree, out_tree = (jtu.tree_structure(e) for e in examples)
-        if not lapack or lapack[0]:
+        if lapack:
             _initialize_lapack()
-        exe = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        # the devices it was compiled for (jax.jit's default device); left to itself the
+        # loader would spread it over every local device and refuse one-device inputs
+        by_id = {d.id: d for d in jax.local_devices()}
+        exe = serialize_executable.deserialize_and_load(payload, in_tree, out_tree,
+                                                        execution_devices=[by_id[i] for i in device_ids])
     except Exception:  # noqa: BLE001
         return None
     STATS["loaded"] += 1

@@ -213,7 +213,9 @@ def test_compiled_chunks_are_reused_only_for_the_same_configuration():
 def test_several_local_devices(tmp_path):
     """With two CPU devices (a fresh process with XLA's host device count set) the chunks
     run on both and the result is gathered in member order (this used to fail when the
-    chunks were concatenated across devices)."""
+    chunks were concatenated across devices); a second such process loads the stored
+    one-device programs onto the one device they were compiled for (loaded onto every
+    local device they refused one-device inputs)."""
     import os
     import subprocess
     import sys
@@ -230,11 +232,16 @@ def test_several_local_devices(tmp_path):
         "for i in (0, 299, 300, 599):\n"
         "    one = nhjax.simulate(cat, X[i], 2.0, rtol=1e-9, atol=1e-9, saveat=3, diagnostics=False)\n"
         "    np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)\n"
-        "print('ok')\n"
+        "from nhjax import _programs\n"
+        "print(_programs.STATS['executables'], 'ok')\n"
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
-    assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", NHJAX_CACHE_DIR=str(tmp_path))
+    loaded = []
+    for _ in range(2):
+        out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+        assert out.returncode == 0 and out.stdout.strip().endswith("ok"), out.stderr[-2000:]
+        loaded.append(int(out.stdout.strip().split()[-2]))
+    assert loaded[0] == 0 and loaded[1] >= 2  # the second process ran stored executables
 
 
 def test_refilled_lanes_give_each_member_its_own_solve():
