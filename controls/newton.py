@@ -121,6 +121,16 @@ def _fd_hessian(sh, z, w, h):
     return 0.5 * (H + H.T)
 
 
+def _stationarity(g, A, free=None):
+    """(relative stationarity max |g + A^T lam| / max |g| over the ``free`` parameters,
+    lam): lam the least-squares multipliers there (all parameters if ``free`` is None)."""
+    free = np.ones(g.shape[0], bool) if free is None else free
+    m = A.shape[0]
+    lam = -np.linalg.lstsq(A[:, free].T, g[free], rcond=None)[0] if free.any() and m else np.zeros(m)
+    r = (g + A.T @ lam)[free]
+    return float(np.abs(r).max(initial=0.0) / max(np.abs(g).max(), 1e-300)), lam
+
+
 def _project(sh, z, y, D, Qi, tol, max_iter=10):
     """Gauss–Newton projection onto psi = 0 with least Q-norm steps,
     d = -Q^-1 A^T (A Q^-1 A^T + mu I)^-1 psi (mu -> 0: quadratic convergence;
@@ -237,8 +247,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
         converged, msg, it, alpha = False, "max_iter reached", 0, 0.0
         for it in range(1, max_iter + 1):
             g, A = D[0], D[1:]
-            lam = -np.linalg.lstsq(A.T, g, rcond=None)[0]
-            stat = float(np.abs(g + A.T @ lam).max() / max(np.abs(g).max(), 1e-300))
+            stat, lam = _stationarity(g, A)
             record(stat, alpha)
             if stat < gtol and np.abs(y[1:]).max() < ctol:
                 converged, msg = True, "converged: constraints and stationarity within tolerance"

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .direct import DirectResult, _check_differentiable
-from .newton import _control_cost_hessian, _Shooting, _values_and_jacobian
+from .newton import _control_cost_hessian, _Shooting, _stationarity, _values_and_jacobian
 from .problem import (
     OCP,
     Progress,
@@ -187,12 +187,6 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
     bar = Progress(progress, max_iter, "direct (SQP)")
     mu, converged, msg, alpha, lam, it = 0.0, False, "max_iter reached", 0.0, np.zeros(m), 0
 
-    def stationarity(g, A, at_bound):
-        free = ~at_bound
-        lam = -np.linalg.lstsq(A[:, free].T, g[free], rcond=None)[0] if free.any() and m else np.zeros(m)
-        r = (g + A.T @ lam)[free]
-        return float(np.abs(r).max(initial=0.0) / max(np.abs(g).max(), 1e-300)), lam
-
     try:
         for it in range(max_iter + 1):
             g, A, c = D[0], D[1:], y[1:]
@@ -205,32 +199,36 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
             # parameters the QP holds at a bound (active, with a positive multiplier)
             at_bound = ((z + d - lo <= 1e-9 * np.maximum(1.0, np.abs(lo))) & (zl > 1e-10)) | (
                 (hi - z - d <= 1e-9 * np.maximum(1.0, np.abs(hi))) & (zu > 1e-10))
-            stat, lam = stationarity(g, A, at_bound)
+            stat, lam = _stationarity(g, A, ~at_bound)
             viol = float(np.abs(c).max(initial=0.0))
             for k, v in (("cost", float(y[0])), ("violation", viol), ("stationarity", stat), ("step", alpha),
                          ("seconds", time.perf_counter() - t_start)):
                 history[k].append(v)
             bar.update(iteration=it, cost=float(y[0]), violation=f"{viol:.1e}", stationarity=f"{stat:.1e}",
                        step=f"{alpha:.3g}")
-            predicted = abs(g @ d + 0.5 * d @ B @ d)  # the QP's cost change
+            dBd = max(d @ B @ d, 0.0)
+            predicted = abs(g @ d + 0.5 * dBd)  # the QP's cost change
             if viol < ctol and (stat < gtol or predicted <= ftol * max(1.0, abs(float(y[0])))):
                 converged, msg = True, "converged: constraints and stationarity within tolerance"
                 break
             if it == max_iter:
                 break
             # l1 merit J + mu |psi|_1, mu large enough for d to be a descent direction (N&W (18.36))
-            dBd = max(d @ B @ d, 0.0)
             c1 = np.abs(c).sum()
             if c1 > 0:
                 mu = max(mu, (g @ d + 0.5 * dBd) / (0.5 * c1), 1.1 * np.abs(yq).max(initial=0.0))
             merit = y[0] + mu * c1
             slope = g @ d - mu * c1
+
+            def sufficient(y_t, alpha):  # Armijo on the merit
+                return y_t is not None and y_t[0] + mu * np.abs(y_t[1:]).sum() <= \
+                    merit + 1e-4 * alpha * min(slope, 0.0) + 1e-14 * abs(merit)
+
             alpha, accepted = 1.0, False
             for trial in range(30):
                 z_t = np.clip(z + alpha * d, lo, hi)
                 y_t, D_t = evaluate(z_t)
-                if y_t is not None and y_t[0] + mu * np.abs(y_t[1:]).sum() <= merit + 1e-4 * alpha * min(slope, 0.0) \
-                        + 1e-14 * abs(merit):
+                if sufficient(y_t, alpha):
                     accepted = True
                     break
                 if trial == 0 and y_t is not None:
@@ -238,8 +236,7 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
                     corr = -A.T @ np.linalg.lstsq(A @ A.T, y_t[1:], rcond=None)[0] if m else 0.0
                     z_s = np.clip(z + d + corr, lo, hi)
                     y_s, D_s = evaluate(z_s)
-                    if y_s is not None and y_s[0] + mu * np.abs(y_s[1:]).sum() <= merit + 1e-4 * min(slope, 0.0) \
-                            + 1e-14 * abs(merit):
+                    if sufficient(y_s, 1.0):
                         z_t, y_t, D_t, accepted = z_s, y_s, D_s, True
                         break
                 alpha *= 0.5
