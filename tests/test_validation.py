@@ -173,6 +173,17 @@ def test_traced_checks_are_runtime_errors_with_the_same_words():
     np.testing.assert_allclose(span(jnp.pi)[-1], [1.0, 0.0], atol=1e-6)  # a period of omega = 2
     with pytest.raises(Exception, match="t1 must be greater than t0"):
         jax.block_until_ready(span(-1.0))
+    # traced save times and steps: checked before the solve, whose program has no checks
+    times = jax.jit(lambda ts: nhjax.simulate(OSC, jnp.array([1.0, 0.0]), jnp.pi, saveat=ts).xs)
+    np.testing.assert_allclose(times(jnp.array([0.0, 1.0, jnp.pi]))[-1], [1.0, 0.0], atol=1e-6)
+    for bad in ([0.0, 2.0, 1.0], [0.0, 1.0, 4.0], [-0.5, 1.0, 2.0]):
+        with pytest.raises(Exception, match="saveat times must be sorted and lie in"):
+            jax.block_until_ready(times(jnp.array(bad)))
+    fixed = jax.jit(lambda h: nhjax.simulate(OSC, jnp.array([1.0, 0.0]), jnp.pi, saveat=2, solver=nhjax.RKMK4(),
+                                             dt0=h, diagnostics=False).xs)
+    np.testing.assert_allclose(fixed(jnp.pi / 200)[-1], [1.0, 0.0], atol=1e-6)
+    with pytest.raises(Exception, match="dt0 must be positive"):
+        jax.block_until_ready(fixed(-0.01))
 
 
 def test_time_spans_and_saved_times():

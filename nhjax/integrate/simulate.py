@@ -59,6 +59,7 @@ from ..errors import (
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
 from .adjoint import DiscreteAdjoint, _Problem, _save_state, discrete_solve
+from .one_function import as_one_function
 from .progress import SimulatedTimeMeter
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
@@ -356,6 +357,15 @@ TRACES = collections.Counter()
 
 def _solve_impl(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
     TRACES["solve"] += 1
+    if not static.progress and isinstance(adjoint, (diffrax.RecursiveCheckpointAdjoint, DiscreteAdjoint)):
+        # one compiled function instead of a kernel sequence (see one_function); not for
+        # adjoints that support forward mode, which a custom VJP would block
+        return as_one_function(_solve_body, system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0,
+                               static, show)
+    return _solve_body(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static, show)
+
+
+def _solve_body(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
     problem, y0 = _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, static, show)
     with _error_checks(static.runtime_checks):
         if isinstance(adjoint, DiscreteAdjoint):
@@ -611,6 +621,20 @@ def simulate(
         persistent cache does not keep programs with host callbacks).
     diagnostics : compute invariants, constraint residuals and the controls at the
         saved times (False: a smaller program, e.g. inside an optimizer).
+
+    What the extras cost (``benchmarks/batch_throughput.py`` measures them):
+
+    * saved times: one dense-output evaluation (a polynomial, and an exponential on
+      group parts) per saved time, inside the step that passes it; ``saveat=2`` keeps
+      t0 and t1 and interpolates nothing. The solve, with its save buffers, is
+      compiled as one function (``nhjax.integrate.one_function``), so a longer save
+      buffer does not add a per-call cost of XLA's kernel scheduling.
+    * ``track_work``: one more integrated component (the power of the inputs), which
+      stays out of the error norm, so the steps are those of the solve without it.
+    * ``diagnostics``: the invariants, constraint residuals and controls evaluated
+      at every saved time after the solve (vectorized): proportional to the saved
+      times, and a second, small program for eager calls.
+    * ``progress``: a host callback in the loop, and a second compiled program.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
     if not isinstance(system, AbstractSystem):
@@ -643,10 +667,14 @@ def simulate(
     )
     t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
     show = np.asarray(bool(progress))
-    if not traced:  # inputs checked above: diffrax's runtime checks stay out of the program
-        static = dataclasses.replace(static, runtime_checks=False)
-    else:
+    # diffrax's own runtime checks (save times, dt0) stay out of the solve's program: for
+    # eager calls simulate() checked them above, for traced ones _traced_time_checks
+    # does, outside the solve, whose program then has no host callback and compiles
+    # into one function (see one_function)
+    static = dataclasses.replace(static, runtime_checks=False)
+    if traced:
         static = dataclasses.replace(static, error_mode=_programs._error_mode())
+        x0 = _traced_time_checks(x0, t0a, t1a, ts, dt0, user_times=not isinstance(saveat, (int, type(None))))
     if traced:
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
@@ -722,6 +750,17 @@ def _reports_accuracy(system, x0, t0) -> bool:
 
 
 _GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"
+
+
+def _traced_time_checks(x0, t0, t1, ts, dt0, *, user_times):
+    """diffrax's checks of the save times and of dt0, as runtime errors on x0 (for a
+    traced simulate(), whose solve runs without diffrax's own checks)."""
+    if user_times and jnp.size(ts) > 0:
+        bad = jnp.any(ts[1:] < ts[:-1]) | (ts[0] < t0) | (ts[-1] > t1)
+        x0 = error_if(x0, bad, "nhjax.simulate: saveat times must be sorted and lie in [t0, t1]")
+    if dt0 is not None:
+        x0 = error_if(x0, ~(dt0 > 0), "nhjax.simulate: dt0 must be positive (nhjax integrates forward in time)")
+    return x0
 
 
 def _runtime_checks(traj, static, on_guard):
