@@ -40,6 +40,7 @@ import numpy as np
 import optimistix as optx
 
 import nhjax
+from nhjax._linalg import solve as small_solve
 from nhjax.mechanics import AbstractSystem
 
 from .problem import (
@@ -79,7 +80,8 @@ class HamiltonianSystem(AbstractSystem):
         u = jnp.zeros(k, x.dtype)
         steps = 1 if self.u_star_method == "quadratic" else 20
         for _ in range(steps):
-            u = u - jnp.linalg.solve(Huu(t, x, p, u), Hu(t, x, p, u))
+            # without LAPACK, so that the extremal's loops compile as one function (nhjax._linalg)
+            u = u - small_solve(Huu(t, x, p, u), Hu(t, x, p, u))
         if self.ocp.u_lower is not None:
             u = jnp.clip(u, self.ocp.u_lower, self.ocp.u_upper)
         return u

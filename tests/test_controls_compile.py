@@ -120,6 +120,25 @@ def test_compiled_programs_have_no_host_callbacks():
     assert "callback" not in text
 
 
+def test_the_hamiltonian_flow_compiles_without_lapack_as_one_function():
+    """u* solves H_uu du = -H_u at every vector-field evaluation of the extremal. With
+    LAPACK's solve there, XLA could not compile the extremal's time-stepping loop as one
+    function; nhjax._linalg.solve keeps LAPACK out (the torque-free double integrator's
+    flow is linear: its x(T) is checked against the matrix exponential)."""
+    import nhjax
+
+    ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
+    ham = pontryagin.HamiltonianSystem(ocp)
+    y0 = jnp.array([0.1, -0.2, 0.6, 0.3])  # (q, v, p_q, p_v)
+    run = jax.jit(lambda y: nhjax.simulate(ham, y, 1.0, saveat=11, rtol=1e-12, atol=1e-12, diagnostics=False).xs)
+    text = run.lower(y0).compile().as_text()
+    assert "custom_call_target=\"lapack" not in text
+    assert "xla_cpu_small_call" in text
+    # u* = -p_v (w = b = 1): q' = v, v' = -p_v, p_q' = 0, p_v' = -p_q
+    A = np.array([[0, 1, 0, 0], [0, 0, 0, -1], [0, 0, 0, 0], [0, 0, -1, 0]], float)
+    np.testing.assert_allclose(run(y0)[-1], jax.scipy.linalg.expm(jnp.asarray(A)) @ y0, rtol=0, atol=1e-10)
+
+
 @pytest.mark.parametrize("optimizer", ["sqp", "lbfgs"])
 def test_progress_line_ends_full_when_converged(capsys, optimizer):
     ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
