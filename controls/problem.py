@@ -182,6 +182,9 @@ class Progress:
             self.bar.disp(bar_style="danger", check_delay=False)
 
 
+_N_CONSTRAINTS: dict = {}
+
+
 def check_tolerances(owner, **tols):
     """Positive finite tolerances (and integer budgets, passed as (value, 'int'))."""
     with as_problem_error():
@@ -189,7 +192,8 @@ def check_tolerances(owner, **tols):
             if isinstance(v, tuple):
                 V.integer(name, v[0], minimum=v[2] if len(v) > 2 else 1, owner=owner)
             elif v is not None:
-                V.positive(name, v, owner=owner, shape=())
+                # checked on the host (a device array per check cost ~0.1 ms each solve)
+                V.positive(name, v, owner=owner, shape=(), as_float=not isinstance(v, jax.core.Tracer))
 
 
 def check_ocp(ocp, owner):
@@ -383,7 +387,20 @@ class OCP(eqx.Module):
     def n_constraints(self) -> int:
         if self.terminal_constraints is None:
             return 0
-        return jax.eval_shape(lambda: self.terminal_constraints(self.x0)).shape[0]
+        # a structural question, asked by every solve: traced once per structure
+        key = (jtu.tree_structure(self.terminal_constraints),
+               tuple((np.shape(a), np.result_type(a)) for a in jtu.tree_leaves(self.terminal_constraints)),
+               jtu.tree_structure(self.x0), tuple(np.shape(a) for a in jtu.tree_leaves(self.x0)))
+        try:
+            return _N_CONSTRAINTS[key]
+        except (KeyError, TypeError):
+            pass
+        m = jax.eval_shape(lambda: self.terminal_constraints(self.x0)).shape[0]
+        try:
+            _N_CONSTRAINTS[key] = m
+        except TypeError:  # unhashable static fields: no caching
+            pass
+        return m
 
     def terminal(self, x):
         """(Phi(x), psi(x)) with zeros where absent."""

@@ -78,8 +78,12 @@ class Uncacheable(Exception):
 
 def directory() -> Path | None:
     """Where programs are kept (None: caching is off)."""
-    base = jax.config.jax_compilation_cache_dir
-    if not base or os.environ.get("NHJAX_PROGRAM_CACHE", "1").strip().lower() in ("0", "off", "false", "no"):
+    return _directory(jax.config.jax_compilation_cache_dir, os.environ.get("NHJAX_PROGRAM_CACHE", "1"))
+
+
+@functools.lru_cache(maxsize=8)
+def _directory(base, switch) -> Path | None:  # asked on every call: a Path costs ~50 us
+    if not base or switch.strip().lower() in ("0", "off", "false", "no"):
         return None
     return Path(base) / "nhjax-programs"
 
@@ -287,15 +291,16 @@ def _store(path: Path, data: bytes):
         oldest.unlink(missing_ok=True)
 
 
-def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None, compiler_options=None):
+def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None, compiler_options=None,
+             flat=None):
     """(compiled caller, output treedef) of ``fn`` on ``args``'s structure, from memory,
     disk (its executable, or its program compiled) or a new export; None when it cannot
-    be cached."""
+    be cached. ``flat``: ``jtu.tree_flatten(args)`` if the caller has it."""
     folder = directory()
     if folder is None or jax.config.jax_disable_jit:
         return None
     options = dict(compiler_options or {})
-    quick = _quick_key(name, fn, args, error_mode)
+    quick = _quick_key(name, fn, args, error_mode, flat)
     if quick is _TRACED:
         return None
     if quick is not None and options:
@@ -336,12 +341,12 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     return None if program is _FAILED else program
 
 
-def _quick_key(name, fn, args, error_mode=None):
+def _quick_key(name, fn, args, error_mode=None, flat=None):
     """The in-process key, as jax.jit's own cache has it: structure, shapes and dtypes,
     and the static values by hash (a global changed later in the same process is not
     seen, exactly as by jax.jit). None if a static value is unhashable; ``_TRACED`` if
     an argument is traced (a call under an outer transformation: nothing to cache)."""
-    leaves, treedef = jtu.tree_flatten(args)
+    leaves, treedef = flat if flat is not None else jtu.tree_flatten(args)
     if any(isinstance(x, jax.core.Tracer) for x in leaves):
         return _TRACED
     desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
@@ -384,11 +389,12 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fa
     the arguments cannot be fingerprinted. ``error_mode``: the equinox error mode
     ``fn`` sets for itself while traced (then the mode in force, which another thread
     may be changing, is not read)."""
-    program = _program(name, fn, args, error_mode)
+    flat = jtu.tree_flatten(args)  # once, for the key and the inputs
+    program = _program(name, fn, args, error_mode, flat=flat)
     if program is None:
         return (fallback or eqx.filter_jit(fn))(*args)
     caller, out_def = program
-    return jtu.tree_unflatten(out_def, caller(*_inputs(args)))
+    return jtu.tree_unflatten(out_def, caller(*[x for x in flat[0] if eqx.is_array(x)]))
 
 
 _TRACED = object()  # the call is under an outer trace
