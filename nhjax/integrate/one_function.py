@@ -4,9 +4,9 @@ Why. XLA's CPU runtime runs a program as a sequence of kernels ("thunks"). When 
 sequence has more than 8 kernels and one of them touches a buffer over 512 bytes
 (e.g. 101 saved states of a 5-state system), it runs them through a dataflow
 executor that hands ready kernels to a thread pool. For a program of microseconds
-that hand-off (waking a pool thread) costs more than the work: a jitted solve of the
-falling cat with 101 saved times took about twice as long as the same solve with 11
-(the cost is per call, not per step; it does not grow with the horizon). The
+that hand-off (waking a pool thread) can cost as much as the work: a jitted solve
+with enough saved times to pass 512 bytes paid it on every call, whatever its
+horizon (``benchmarks/batch_throughput.py`` times the cat's solve on defaults). The
 thresholds are constants in XLA (``ThunkExecutor::Options``), with no flag.
 
 What. ``xla_cpu_small_while_loop_byte_threshold`` (set by nhjax, see
@@ -18,7 +18,8 @@ body reads its inputs through the loop's carry behind a barrier too (otherwise X
 hoists the loop-invariant body out of the loop).
 
 Limits. XLA compiles such a loop as one function only without host callbacks
-(equinox's runtime errors, progress bars) and below the byte threshold; otherwise the
+(equinox's runtime errors, progress bars), without LAPACK calls (``jnp.linalg``; see
+``nhjax._linalg``) and below the byte threshold; otherwise the
 loop is a while kernel around the same sequence (no gain, no loss). Reverse mode is
 kept with a custom VJP that differentiates the unwrapped program (so whatever adjoint
 the program uses, e.g. diffrax's checkpointed loops or ``DiscreteAdjoint``, does the
