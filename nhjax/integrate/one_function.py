@@ -86,7 +86,10 @@ def as_one_function(fn, *args):
     box = []
     closed, shapes = jax.make_jaxpr(flat_fn, return_shape=True)(*flat_in)
     out_def, out_static = box[0]
-    if closed.effects or _has_callback(closed.jaxpr):  # no gain, and effects need no wrapper
+    # no gain with callbacks or effects; and a custom VJP cannot differentiate a traced
+    # value the program closes over (a number in a user's lambda under an outer grad)
+    if (closed.effects or _has_callback(closed.jaxpr)
+            or any(isinstance(c, jax.core.Tracer) for c in closed.consts)):
         flat_out = jex.core.jaxpr_as_fun(closed)(*flat_in)
         return eqx.combine(jtu.tree_unflatten(out_def, flat_out), out_static)
     run = jex.core.jaxpr_as_fun(closed)
