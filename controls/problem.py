@@ -388,8 +388,10 @@ class OCP(eqx.Module):
         if self.terminal_constraints is None:
             return 0
         # a structural question, asked by every solve: traced once per structure
+        # (a function that is no pytree, e.g. a lambda, is its own leaf: keyed by identity)
         key = (jtu.tree_structure(self.terminal_constraints),
-               tuple((np.shape(a), np.result_type(a)) for a in jtu.tree_leaves(self.terminal_constraints)),
+               tuple((np.shape(a), a.dtype) if eqx.is_array(a) else a
+                     for a in jtu.tree_leaves(self.terminal_constraints)),
                jtu.tree_structure(self.x0), tuple(np.shape(a) for a in jtu.tree_leaves(self.x0)))
         try:
             return _N_CONSTRAINTS[key]
