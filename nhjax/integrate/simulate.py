@@ -438,8 +438,9 @@ def _error_checks(on: bool):
             _errors.EQX_ON_ERROR = old
 
 
-def _save_times(saveat, t0, t1):
-    """Save times from ``saveat`` (already checked by the entry point's check_saveat)."""
+def _save_times(saveat, t0, t1, runtime_errors=False):
+    """Save times from ``saveat`` (already checked by the entry point's check_saveat);
+    traced times are checked by a runtime error if ``runtime_errors``."""
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)):
@@ -447,13 +448,19 @@ def _save_times(saveat, t0, t1):
             return jnp.linspace(t0, t1, int(saveat))
         return jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)))  # no program to compile
     ts = jnp.asarray(saveat, dtype=float)
-    if not _is_traced(ts, t0, t1):
-        tsn = np.asarray(ts)
-        if np.any(np.diff(tsn) < 0) or tsn[0] < float(t0) - 1e-12 or tsn[-1] > float(t1) + 1e-12:
-            raise TimeSpanError(
-                f"simulate: saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]; "
-                f"got {tsn.size} times from {tsn.min():.6g} to {tsn.max():.6g}"
-            )
+    if _is_traced(ts, t0, t1):
+        if not runtime_errors:
+            return ts
+        # a runtime error here, outside the solve (which runs without diffrax's own
+        # checks: see simulate)
+        bad = jnp.any(ts[1:] < ts[:-1]) | (ts[0] < t0) | (ts[-1] > t1)
+        return error_if(ts, bad, "nhjax.simulate: saveat times must be sorted and lie in [t0, t1]")
+    tsn = np.asarray(ts)
+    if np.any(np.diff(tsn) < 0) or tsn[0] < float(t0) - 1e-12 or tsn[-1] > float(t1) + 1e-12:
+        raise TimeSpanError(
+            f"simulate: saveat times must be sorted and lie in [t0, t1] = [{float(t0)}, {float(t1)}]; "
+            f"got {tsn.size} times from {tsn.min():.6g} to {tsn.max():.6g}"
+        )
     return ts
 
 
@@ -483,9 +490,11 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
 
 def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
                max_steps, stepsize_controller, jump_ts, adjoint, project_steps, track_work, progress,
-               diagnostics=True):
+               diagnostics=True, runtime_errors=False):
     """Resolve solver, step-size controller, adjoint, save times and the static
-    configuration of a solve (shared by simulate and simulate_batch)."""
+    configuration of a solve (shared by simulate and simulate_batch). ``runtime_errors``:
+    traced save times and dt0 get the checks diffrax would make, as runtime errors
+    (simulate's solve runs without diffrax's own)."""
     spaces = system.spaces
     euclid = _all_euclidean(spaces)
     if jump_ts is None and control is not None and hasattr(control, "breakpoints"):
@@ -547,8 +556,11 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         diagnostics=bool(diagnostics),
         flat_work=flat_work,
     )
-    ts = _save_times(saveat, t0, t1)
+    ts = _save_times(saveat, t0, t1, runtime_errors)
     if dt0 is not None:
+        if runtime_errors and _is_traced(dt0):  # concrete values: checked by solver_settings
+            dt0 = error_if(jnp.asarray(dt0, float), ~(dt0 > 0),
+                           "nhjax.simulate: dt0 must be positive (nhjax integrates forward in time)")
         dt0 = jnp.asarray(dt0, float)
     return solver, stepsize_controller, adjoint, dt0, static, ts
 
@@ -663,18 +675,16 @@ def simulate(
         system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
         atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
         jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
-        progress=bool(progress), diagnostics=diagnostics,
+        progress=bool(progress), diagnostics=diagnostics, runtime_errors=True,
     )
     t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
     show = np.asarray(bool(progress))
-    # diffrax's own runtime checks (save times, dt0) stay out of the solve's program: for
-    # eager calls simulate() checked them above, for traced ones _traced_time_checks
-    # does, outside the solve, whose program then has no host callback and compiles
-    # into one function (see one_function)
+    # diffrax's own runtime checks (save times, dt0) stay out of the solve's program:
+    # _configure made them (eager: raised; traced: runtime errors outside the solve), so
+    # the solve has no host callback and compiles into one function (see one_function)
     static = dataclasses.replace(static, runtime_checks=False)
     if traced:
         static = dataclasses.replace(static, error_mode=_programs._error_mode())
-        x0 = _traced_time_checks(x0, t0a, t1a, ts, dt0, user_times=not isinstance(saveat, (int, type(None))))
     if traced:
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
@@ -750,17 +760,6 @@ def _reports_accuracy(system, x0, t0) -> bool:
 
 
 _GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"
-
-
-def _traced_time_checks(x0, t0, t1, ts, dt0, *, user_times):
-    """diffrax's checks of the save times and of dt0, as runtime errors on x0 (for a
-    traced simulate(), whose solve runs without diffrax's own checks)."""
-    if user_times and jnp.size(ts) > 0:
-        bad = jnp.any(ts[1:] < ts[:-1]) | (ts[0] < t0) | (ts[-1] > t1)
-        x0 = error_if(x0, bad, "nhjax.simulate: saveat times must be sorted and lie in [t0, t1]")
-    if dt0 is not None:
-        x0 = error_if(x0, ~(dt0 > 0), "nhjax.simulate: dt0 must be positive (nhjax integrates forward in time)")
-    return x0
 
 
 def _runtime_checks(traj, static, on_guard):
