@@ -358,10 +358,10 @@ def _quick_key(name, fn, args, error_mode=None, flat=None):
     return key
 
 
-def _inputs(args):
-    """The array leaves of ``args``, in the order of the program's inputs (those of
-    ``eqx.partition(args, eqx.is_array)``'s first part)."""
-    return [x for x in jtu.tree_leaves(args) if eqx.is_array(x)]
+def _inputs(leaves):
+    """The array leaves among ``jtu.tree_leaves(args)``, in the order of the program's
+    inputs (those of ``eqx.partition(args, eqx.is_array)``'s first part)."""
+    return [x for x in leaves if eqx.is_array(x)]
 
 
 def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None = None):
@@ -375,7 +375,7 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
     exe, out_def = program
 
     def run(*a):
-        return jtu.tree_unflatten(out_def, exe(*_inputs(a)))
+        return jtu.tree_unflatten(out_def, exe(*_inputs(jtu.tree_leaves(a))))
 
     return run
 
@@ -394,7 +394,7 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fa
     if program is None:
         return (fallback or eqx.filter_jit(fn))(*args)
     caller, out_def = program
-    return jtu.tree_unflatten(out_def, caller(*[x for x in flat[0] if eqx.is_array(x)]))
+    return jtu.tree_unflatten(out_def, caller(*_inputs(flat[0])))
 
 
 _TRACED = object()  # the call is under an outer trace

@@ -40,10 +40,13 @@ from jax.custom_derivatives import SymbolicZero
 
 __all__ = ["as_one_function"]
 
-_CALLBACKS = ("callback", "io_callback", "pure_callback", "debug_callback", "debug_print")
+#: Substrings of the names of host-callback primitives (pure_callback, io_callback,
+#: debug_callback, debug_print).
+_CALLBACKS = ("callback", "debug_print")
 
 
 def _has_callback(jaxpr) -> bool:
+    """Whether ``jaxpr`` or any jaxpr nested in it calls back to the host."""
     for eqn in jaxpr.eqns:
         if any(c in eqn.primitive.name for c in _CALLBACKS):
             return True

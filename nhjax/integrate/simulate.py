@@ -558,10 +558,10 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
     )
     ts = _save_times(saveat, t0, t1, runtime_errors)
     if dt0 is not None:
-        if runtime_errors and _is_traced(dt0):  # concrete values: checked by solver_settings
-            dt0 = error_if(jnp.asarray(dt0, float), ~(dt0 > 0),
-                           "nhjax.simulate: dt0 must be positive (nhjax integrates forward in time)")
+        traced_dt0 = _is_traced(dt0)
         dt0 = jnp.asarray(dt0, float)
+        if runtime_errors and traced_dt0:  # concrete values: checked by solver_settings
+            dt0 = error_if(dt0, ~(dt0 > 0), "nhjax.simulate: dt0 must be positive (nhjax integrates forward in time)")
     return solver, stepsize_controller, adjoint, dt0, static, ts
 
 
@@ -685,7 +685,6 @@ def simulate(
     static = dataclasses.replace(static, runtime_checks=False)
     if traced:
         static = dataclasses.replace(static, error_mode=_programs._error_mode())
-    if traced:
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
     elif not static.diagnostics:
