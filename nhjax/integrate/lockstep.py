@@ -138,6 +138,10 @@ def _put(tree, idx, vals):
     return jtu.tree_map(lambda a, v: a.at[..., idx].set(v, mode="drop", unique_indices=True), tree, vals)
 
 
+#: Largest saved-states buffer (bytes) for which the tail's one-lane loop is used.
+_TAIL_YS_BYTES = 16384
+
+
 def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, lanes=None, fast_trig=True):
     """Solve the members of ``problem`` (an ``adjoint._Problem`` whose array leaves carry a
     trailing member axis of size M) from ``y0`` (leaves ``[..., M]``) with ``args``
@@ -370,7 +374,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
 
                 vals = vm(value, pr, a, c["tprev"], c["tnext"], dense, t_s)
                 row = jnp.where(pend, idx, n_ts)  # out of range: dropped
-                col = jnp.where(pend, c["mem"], M + lane)  # unique, also where dropped
+                col = jnp.where(pend, c["mem"], M + jnp.arange(idx.shape[0]))  # unique, also where dropped
                 ys = jtu.tree_map(
                     lambda buf, v: buf.at[row, ..., col].set(jnp.moveaxis(v, -1, 0), mode="drop",
                                                              unique_indices=True),
@@ -401,22 +405,53 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         c, b = step_fn(c)
         return c, bad | b
 
+    # The tail: once the queue is empty and at most T lanes still run, those members are
+    # finished one at a time in a one-lane loop. A step of all L lanes costs about as much
+    # as a step of one (kernel dispatch, not arithmetic, dominates at these widths), and a
+    # loop over one member's numbers is small enough for XLA to compile into one function
+    # (nhjax/_xla_flags.py), ~20x cheaper per step than a step of the lanes. So a few long
+    # members no longer keep L lanes stepping for the last hundreds of steps. Not with
+    # many saved times: the saved-states buffer then makes the one-lane loop large.
+    ys_bytes = 0 if ends_only else sum(a.size * a.dtype.itemsize for a in jtu.tree_leaves(c["ys"]))
+    T = L // 4 if (L >= 8 and ys_bytes <= _TAIL_YS_BYTES) else 0
+
+    def in_tail(c):
+        return (c["next"] >= n_run) & (jnp.sum(active_of(c)) <= T)
+
     def run_lanes(state):
         """Step the lanes until enough of them are idle to be refilled (or, once the queue
-        is empty, until all are done), then refill. The stepping loop carries only the
-        lanes (and the saved states, if any), so for small lane counts XLA compiles it
-        into one function (nhjax/_xla_flags.py) instead of dispatching each kernel."""
+        is empty, until at most T run), then refill."""
         c, out, bad = state
-        c, bad = jax.lax.while_loop(lambda lc: jnp.any(active_of(lc[0])) & ~want_refill(lc[0]) & ~lc[1],
-                                    steps, (c, bad))
+        c, bad = jax.lax.while_loop(
+            lambda lc: jnp.any(active_of(lc[0])) & ~want_refill(lc[0]) & ~lc[1] & ~in_tail(lc[0]),
+            steps, (c, bad))
         c, out = jax.lax.cond(want_refill(c), refill, lambda st: st, (c, out))
         return c, out, bad
 
     def queue_left(state):
         c, _, bad = state
-        return (jnp.any(active_of(c)) | (c["next"] < n_run)) & ~bad
+        return (jnp.any(active_of(c)) | (c["next"] < n_run)) & ~bad & ~in_tail(c)
 
     c, out, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out, jnp.zeros((), bool)))
+
+    if T:
+        shared = ("next", "ys")
+        lane_part = lambda c: {k: v for k, v in c.items() if k not in shared}  # noqa: E731
+
+        def finish_one(i, c):
+            j = tail_lanes[i]
+
+            def run(c):
+                one = dict(_take(lane_part(c), j[None]), **{k: c[k] for k in shared if k in c})
+                one = jax.lax.while_loop(lambda o: jnp.any(active_of(o)), body, one)
+                c = dict(c, **{k: one[k] for k in shared if k in one})
+                c.update(_put(lane_part(c), j[None], lane_part(one)))
+                return c
+
+            return jax.lax.cond(j < L, run, lambda c: c, c)
+
+        tail_lanes = jnp.nonzero(active_of(c) & ~bad, size=T, fill_value=L)[0]
+        c = jax.lax.fori_loop(0, T, finish_one, c)
     c, o = retire(c, out, lane)
     tfinal, yfinal, result = o["t_final"], o["y_end"], o["result"]
 
