@@ -31,9 +31,13 @@ tend to need the most steps, and a long member started late would leave the
 other lanes idle at the end); L lanes step together; a member that ends (t1
 reached, guard, failure, step budget) stays in its lane until R = L/16 lanes
 are idle, then every idle lane writes its member's results into the member's
-own slot and takes the next member of the queue. The stepping loop carries only
-the lanes, so it stays small; a guard's dense output is recomputed after the
-loop for the members that stopped, instead of being stored every step.
+own slot and takes the next member of the queue. Once the queue is empty and at
+most L/4 lanes still run, those members are finished one at a time in a one-lane
+loop, which XLA compiles into one function: a step of all lanes costs about as much
+as a step of one, so a few long members would otherwise keep every lane stepping.
+The stepping loop carries only the lanes, so it stays small; a guard's dense output
+is recomputed after the loop for the members that stopped, instead of being stored
+every step.
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
 (the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
