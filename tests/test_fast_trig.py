@@ -65,3 +65,31 @@ def test_rewrite_replaces_nested_calls_and_flags_large_arguments():
         assert bool(g(x.at[5].set(big), y, w)[1])
     assert bool(g(x, y, w.at[3].set(1e9))[1])  # beyond the range inside the scan body only
     assert not bool(g(x.at[5].set(np.nan), y, w)[1])  # NaN stays NaN, no re-run needed
+
+
+def test_minor_axis_concatenations_of_a_vmapped_field_are_joined_along_the_major_axis():
+    """A vector field vmapped over lanes joins its [lanes, k] pieces along the last axis;
+    the rewrite joins them along the first instead (lock-step layout) with the same
+    values, with and without the sine replacement, also inside a scan body."""
+
+    def field(x):
+        s = jnp.sin(x[0])
+        return jnp.concatenate([x[2:], jnp.stack([s * x[1], jnp.cos(x[1]) - x[0]])])
+
+    def f(X):  # X [4, L]: lanes last, as in the lock-step loop
+        out = jax.vmap(field, in_axes=1, out_axes=1)(X)
+        scanned = jax.lax.scan(lambda c, _: (jax.vmap(field, in_axes=1, out_axes=1)(c), None), X, None, length=3)[0]
+        return out, scanned
+
+    X = jnp.stack([jnp.linspace(-2.0, 2.0, 16), jnp.linspace(0.5, 1.5, 16),
+                   jnp.linspace(-1.0, 0.0, 16), jnp.linspace(3.0, 4.0, 16)])
+    assert "dimension=1" in str(jax.make_jaxpr(f)(X))  # jax's batching rule: the minor axis
+    for trig in (False, True):
+        g = ft.with_fast_trig(f, X, trig=trig)
+        jaxpr = str(jax.make_jaxpr(g)(X))
+        assert "concatenate[dimension=1]" not in jaxpr and "concatenate[dimension=0]" in jaxpr
+        assert (" sin " in jaxpr) == (not trig)
+        out, bad = jax.jit(g)(X)
+        for a, b in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(f(X))):
+            np.testing.assert_allclose(a, b, rtol=0 if not trig else 1e-14, atol=0 if not trig else 1e-14)
+        assert not bool(bad)

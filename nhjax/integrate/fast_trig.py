@@ -17,6 +17,14 @@ Beyond ``LIMIT`` = 2^19 pi/2 (about 8.2e5 rad) the reduction is no longer exact,
 so ``with_fast_trig`` reports it: the function it returns gives a flag that is
 True when any argument of a replaced sin/cos exceeded ``LIMIT`` (or was inf), and
 the caller re-runs with the library functions.
+
+The same rewrite of the lock-step body also turns every concatenation along the
+last axis of arrays of two or more axes into one along the first: a vector field
+vmapped over the lanes builds its state derivative as ``[lanes, n]`` pieces joined
+along n (jax's concatenate batching rule puts the batch axis first), which XLA's
+CPU loop emitter computes component by component across the short minor axis;
+joined along the first axis (``[n, lanes]``, the lock-step layout) each component
+is one contiguous vector over the lanes (same values: a pure rearrangement).
 """
 
 from __future__ import annotations
@@ -104,10 +112,11 @@ def _merge(acc, new):
     return acc
 
 
-def _eval(jaxpr, consts, args, acc):
-    """Evaluate ``jaxpr`` with sin/cos replaced; ``acc`` maps an argument shape to the
-    running elementwise max of |argument| (NaN counted as 0): an elementwise update that
-    fuses with the computation, reduced once at the end."""
+def _eval(jaxpr, consts, args, acc, trig=True):
+    """Evaluate ``jaxpr`` with sin/cos replaced (if ``trig``) and minor-axis concatenations
+    done along the major axis; ``acc`` maps an argument shape to the running elementwise
+    max of |argument| (NaN counted as 0): an elementwise update that fuses with the
+    computation, reduced once at the end."""
     env = {}
 
     def read(v):
@@ -125,18 +134,22 @@ def _eval(jaxpr, consts, args, acc):
         invals = [read(v) for v in eqn.invars]
         prim = eqn.primitive
         key = _INLINE.get(prim.name)
-        if prim in _REPLACE and eqn.outvars[0].aval.dtype == jnp.float64:
+        if trig and prim in _REPLACE and eqn.outvars[0].aval.dtype == jnp.float64:
             x = invals[0]
             acc = _merge(acc, {jnp.shape(x): jnp.where(jnp.isnan(x), 0.0, jnp.abs(x))})
             outs = [_REPLACE[prim](x)]
         elif prim.name == "scan":
-            outs, acc = _eval_scan(eqn, invals, acc)
+            outs, acc = _eval_scan(eqn, invals, acc, trig)
+        elif (prim.name == "concatenate" and len(invals) > 1 and jnp.ndim(invals[0]) >= 2
+              and eqn.params["dimension"] == jnp.ndim(invals[0]) - 1):
+            joined = jnp.concatenate([jnp.moveaxis(x, -1, 0) for x in invals], axis=0)
+            outs = [jnp.moveaxis(joined, 0, -1)]
         elif key is not None and key in eqn.params:
             inner = eqn.params[key]
             if isinstance(inner, jex.ClosedJaxpr):
-                outs, acc = _eval(inner.jaxpr, inner.consts, invals, acc)
+                outs, acc = _eval(inner.jaxpr, inner.consts, invals, acc, trig)
             else:
-                outs, acc = _eval(inner, (), invals, acc)
+                outs, acc = _eval(inner, (), invals, acc, trig)
         else:
             params = prim.get_bind_params(eqn.params)
             with eqn.ctx.manager:
@@ -148,7 +161,7 @@ def _eval(jaxpr, consts, args, acc):
     return [read(v) for v in jaxpr.outvars], acc
 
 
-def _eval_scan(eqn, invals, acc):
+def _eval_scan(eqn, invals, acc, trig=True):
     """A lax.scan whose body has sin/cos replaced; the running maxima of their
     arguments travel through the loop as extra carries (an RKMK stage scan holds the
     vector field of large systems)."""
@@ -157,7 +170,7 @@ def _eval_scan(eqn, invals, acc):
     consts, init, xs = invals[:nc], invals[nc:nc + ncarry], invals[nc + ncarry:]
 
     def run(carry, x, acc_in):
-        outs, acc_new = _eval(body.jaxpr, body.consts, [*consts, *carry, *(x or ())], {})
+        outs, acc_new = _eval(body.jaxpr, body.consts, [*consts, *carry, *(x or ())], {}, trig)
         return outs[:ncarry], outs[ncarry:], _merge(acc_in, acc_new)
 
     x_struct = [jax.ShapeDtypeStruct(a.shape[1:], a.dtype) for a in xs]
@@ -175,10 +188,11 @@ def _eval_scan(eqn, invals, acc):
     return [*carry, *ys], _merge(acc, acc_scan)
 
 
-def with_fast_trig(fn, *example_args):
+def with_fast_trig(fn, *example_args, trig=True):
     """``fn`` with every float64 sin/cos outside while loops and conditionals replaced by the
-    vectorizable versions above (also inside lax.scan bodies). Returns ``g`` with
-    ``g(*args) == (fn(*args), bad)``;
+    vectorizable versions above (also inside lax.scan bodies; ``trig=False``: not
+    replaced), and minor-axis concatenations done along the major axis (module
+    docstring). Returns ``g`` with ``g(*args) == (fn(*args), bad)``;
     ``bad`` is True when some replaced call had an argument beyond ``LIMIT`` or infinite
     (then the outputs are inaccurate: run ``fn`` instead). sin/cos inside while loops
     and conditionals are left alone. Forward use only (derivatives are not defined)."""
@@ -186,7 +200,7 @@ def with_fast_trig(fn, *example_args):
     out_tree = jtu.tree_structure(out_shape)
 
     def g(*args):
-        outs, acc = _eval(closed.jaxpr, closed.consts, jtu.tree_leaves(args), {})
+        outs, acc = _eval(closed.jaxpr, closed.consts, jtu.tree_leaves(args), {}, trig)
         bad = jnp.zeros((), bool)
         for m in acc.values():
             bad = bad | jnp.any(~(m <= LIMIT))

@@ -52,6 +52,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 import optimistix as optx
 
 from ..lie.spaces import AbstractSpace, Euclidean, is_space
@@ -133,6 +134,33 @@ def _clip_to_end(tprev, tnext, t1, t1_clip_floor, keep_step):
 def _take(tree, idx):
     """Array leaves ``[..., M]`` -> ``[..., K]`` at member indices ``idx`` ``[K]`` (clipped)."""
     return jtu.tree_map(lambda a: jnp.take(a, idx, axis=-1, mode="clip"), tree)
+
+
+class _Rows:
+    """Packs the array leaves of a tree like ``example`` (leaves ``[..., N]``, any N) into
+    one ``[rows, N]`` array per dtype, and back. A refill moves a whole lane's state (tens
+    of leaves) in one gather or scatter per dtype instead of one per leaf: XLA's CPU
+    runtime pays for each kernel it dispatches, and a refill of one per leaf was ~100."""
+
+    def __init__(self, example):
+        leaves, self.treedef = jtu.tree_flatten(example)
+        self.spec, rows = [], {}
+        for a in leaves:
+            dt = jnp.dtype(a.dtype)
+            n = int(np.prod(a.shape[:-1], dtype=int))
+            self.spec.append((dt, rows.get(dt, 0), n, a.shape[:-1]))
+            rows[dt] = rows.get(dt, 0) + n
+
+    def pack(self, tree):
+        groups = {}
+        for (dt, _, n, shape), a in zip(self.spec, jtu.tree_leaves(tree)):
+            groups.setdefault(dt, []).append(jnp.reshape(jnp.asarray(a, dt), (n, a.shape[-1])))
+        return {dt: jnp.concatenate(parts, axis=0) for dt, parts in groups.items()}
+
+    def unpack(self, packed):
+        leaves = [jnp.reshape(packed[dt][r0:r0 + n], shape + packed[dt].shape[-1:])
+                  for dt, r0, n, shape in self.spec]
+        return jtu.tree_unflatten(self.treedef, leaves)
 
 
 def _put(tree, idx, vals):
@@ -262,10 +290,14 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     order = jnp.lexsort((jnp.where(jnp.isnan(h0), jnp.inf, h0), not_run)).astype(jnp.int32)
 
     # Lanes: a member index (M: empty), that member's problem and args, its solver state.
+    # Every member's start values in one table per dtype (a refill gathers its columns).
+    start_rows = _Rows((pr_arr, args_arr, y0, starts))
+    start_table = start_rows.pack((pr_arr, args_arr, y0, starts))
+
     def start_values(new):
         """Lane values of members ``new`` ``[K]`` at their start (diffeqsolve's initialisation)."""
-        pr, a, y = _take(pr_arr, new), _take(args_arr, new), _take(y0, new)
-        tnext, cstate, sstate, floor, ev = _take(starts, new)
+        pr, a, y, (tnext, cstate, sstate, floor, ev) = start_rows.unpack(
+            {dt: jnp.take(tab, new, axis=-1, mode="clip") for dt, tab in start_table.items()})
         t0 = problem_of(pr).t0 + 0.0 * tnext
         f, zi = jnp.zeros(new.shape, bool), jnp.zeros(new.shape, jnp.int32)
         vals = dict(mem=new, pr=pr, a=a, y=y, tprev=t0, tnext=tnext, sstate=sstate, cstate=cstate,
@@ -293,39 +325,39 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         return ((c["mem"] < M) & (c["tprev"] < t1) & (c["result"] == successful)
                 & (c["num_steps"] < max_steps))
 
-    def retire(c, out, lanes_idx):
-        """Write the lanes ``lanes_idx`` (L: none) into their members' results; empty them."""
-        li = jnp.minimum(lanes_idx, L - 1)
-        has = (lanes_idx < L) & (c["mem"][li] < M)
-        mem = jnp.where(has, c["mem"][li], M + jnp.arange(lanes_idx.shape[0]))
-        g = lambda k: _take(c[k], li)  # noqa: E731
-        running = (g("tprev") < problem_of(g("pr")).t1) & (g("result") == successful)
-        vals = dict(t_final=g("tprev"), y_end=g("y"), num_steps=g("num_steps"),
-                    num_accepted=g("num_accepted"), num_rejected=g("num_rejected"),
-                    result=jnp.where(running, diffrax.RESULTS.max_steps_reached._value, g("result")))
+    out_rows = _Rows(out)
+
+    def retire(c, outp, which):
+        """Write the lanes where ``which`` [L] holds a member into its results (``outp``:
+        the results packed by out_rows); empty those lanes."""
+        has = which & (c["mem"] < M)
+        running = (c["tprev"] < problem_of(c["pr"]).t1) & (c["result"] == successful)
+        vals = dict(t_final=c["tprev"], y_end=c["y"], num_steps=c["num_steps"],
+                    num_accepted=c["num_accepted"], num_rejected=c["num_rejected"],
+                    result=jnp.where(running, diffrax.RESULTS.max_steps_reached._value, c["result"]))
         if not ends_only:
-            vals["save_index"] = g("save_index")
+            vals["save_index"] = c["save_index"]
         if event is not None:
-            vals.update(ev_mask=g("ev_mask"), ev_tprev=g("ev_tprev"), ev_tnext=g("ev_tnext"),
-                        ev_y=g("ev_y"), ev_sstate=g("ev_sstate"), ev_made_jump=g("ev_made_jump"))
-        out = dict(out)
-        out.update(_put({k: out[k] for k in vals}, mem, vals))
-        return dict(c, mem=c["mem"].at[jnp.where(has, li, L)].set(M, mode="drop")), out
+            vals.update(ev_mask=c["ev_mask"], ev_tprev=c["ev_tprev"], ev_tnext=c["ev_tnext"],
+                        ev_y=c["ev_y"], ev_sstate=c["ev_sstate"], ev_made_jump=c["ev_made_jump"])
+        col = jnp.where(has, c["mem"], M + lane)  # out of range: dropped (and unique)
+        packed = out_rows.pack({k: vals[k] for k in out})
+        outp = {dt: outp[dt].at[:, col].set(packed[dt], mode="drop", unique_indices=True) for dt in outp}
+        return dict(c, mem=jnp.where(has, M, c["mem"])), outp
 
     def refill(state):
-        """Retire the idle lanes and start the next members of the queue in them."""
-        c, out = state
+        """Retire the idle lanes and start the next members of the queue in them (the k-th
+        idle lane takes the k-th next member)."""
+        c, outp = state
         idle = ~active_of(c)
-        sel = jnp.nonzero(idle, size=L, fill_value=L)[0]
-        c, out = retire(c, out, sel)
-        q = c["next"] + lane
-        valid = (sel < L) & (q < n_run)
+        c, outp = retire(c, outp, idle)
+        q = c["next"] + jnp.cumsum(idle) - 1
+        valid = idle & (q < n_run)
         vals = start_values(order[jnp.minimum(q, M - 1)])
-        dest = jnp.where(valid, sel, L + lane)
         c = dict(c)
-        c.update(_put({k: c[k] for k in vals}, dest, vals))
+        c.update(_where(valid, vals, {k: c[k] for k in vals}))
         c["next"] = c["next"] + jnp.sum(valid).astype(jnp.int32)
-        return c, out
+        return c, outp
 
     def want_refill(c):
         return (c["next"] < n_run) & (jnp.sum(~active_of(c)) >= R)
@@ -402,7 +434,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
             new[k] = _where(active, new[k], c[k])
         return new
 
-    step_fn = with_fast_trig(body, c) if fast_trig else (lambda c: (body(c), jnp.zeros((), bool)))
+    step_fn = with_fast_trig(body, c, trig=fast_trig)
 
     def steps(lc):
         c, bad = lc
@@ -436,7 +468,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         c, _, bad = state
         return (jnp.any(active_of(c)) | (c["next"] < n_run)) & ~bad & ~in_tail(c)
 
-    c, out, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out, jnp.zeros((), bool)))
+    c, outp, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out_rows.pack(out), jnp.zeros((), bool)))
 
     if T:
         shared = ("next", "ys")
@@ -456,7 +488,8 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
 
         tail_lanes = jnp.nonzero(active_of(c) & ~bad, size=T, fill_value=L)[0]
         c = jax.lax.fori_loop(0, T, finish_one, c)
-    c, o = retire(c, out, lane)
+    c, outp = retire(c, outp, jnp.ones(L, bool))
+    o = out_rows.unpack(outp)
     tfinal, yfinal, result = o["t_final"], o["y_end"], o["result"]
 
     event_mask = None
