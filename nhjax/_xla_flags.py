@@ -3,15 +3,19 @@
 XLA's CPU runtime runs a compiled program as a sequence of kernels ("thunks"),
 and a ``while`` loop as that sequence once per iteration. A time-stepping loop
 over a few numbers -- one trajectory of a small system, a per-step VJP of the
-discrete adjoint -- is then ~30-300 tiny kernels per step, each paying the
-runtime's dispatch. XLA also has a pass that compiles a whole while loop into
-one function when the bytes its body touches per iteration are below
+discrete adjoint, a lock-step batch step of some tens of lanes -- is then
+~30-300 small kernels per step, each paying the runtime's dispatch (and, for
+kernels that may run concurrently, a hand-off to its thread pool). XLA also has
+a pass that compiles a whole while loop into one function when the bytes its body
+reads and writes per iteration (XLA's cost analysis) are below
 ``xla_cpu_small_while_loop_byte_threshold`` (an ``xla_backend_extra_options``
-entry; XLA's default is 1024 bytes, which almost no ODE loop meets). nhjax raises
-it to 64 KiB: one trajectory of a small system then runs as one compiled loop
-(about twice as fast as kernel by kernel), while the lock-step batch chunks,
-whose steps touch hundreds of KiB, stay kernel by kernel: hoisted they ran
-slower (and so do narrow lock-step loops of 4-16 lanes, which the batch avoids).
+entry; XLA's default is 1024 bytes, which almost no ODE loop meets; loops with a
+scatter, sort or custom call are never hoisted). nhjax raises it to 1 MiB: a
+single trajectory then runs as one compiled loop (about twice as fast as kernel by
+kernel), and so does the lock-step batch's stepping loop up to ~128 lanes of a
+small system (the batch's default lane counts stay there; this needs its vector
+fields in lanes-last layout, see fast_trig.py: with component-by-component
+concatenations the one-function loop ran slower than the kernels).
 
 XLA reads XLA_FLAGS once, when JAX initialises its CPU backend, so the setting only
 takes effect if ``import nhjax`` comes before the first JAX computation of the
@@ -26,7 +30,7 @@ import os
 import warnings
 
 KEY = "xla_cpu_small_while_loop_byte_threshold"
-DEFAULT_BYTES = 65536
+DEFAULT_BYTES = 1 << 20
 _OPTION = "--xla_backend_extra_options="
 
 
@@ -63,7 +67,8 @@ def configure(environ=os.environ) -> str:
     if xla_bridge.backends_are_initialized():
         warnings.warn(
             "nhjax was imported after JAX's backend started, so XLA keeps compiling small "
-            "time-stepping loops kernel by kernel (single trajectories ~2x slower on the CPU). "
+            "time-stepping loops kernel by kernel (single trajectories and batches ~2x slower "
+            "on the CPU). "
             "Import nhjax before the first JAX computation, or set "
             f"XLA_FLAGS='{_OPTION}{KEY}={nbytes}' before starting Python.",
             stacklevel=3,

@@ -250,8 +250,10 @@ _MIN_SPLIT = 64
 
 #: Most lanes per chunk (members stepped together). A lane costs per step whether or not
 #: its member is still running, so lanes well below the members per chunk let a few long
-#: members finish while the others' lanes are refilled (see _default_lanes).
-_MAX_LANES = 512
+#: members finish while the others' lanes are refilled (see _default_lanes); and a step of
+#: up to ~128 lanes of a small system stays below the size up to which XLA compiles the
+#: stepping loop into one function (nhjax/_xla_flags.py).
+_MAX_LANES = 128
 
 
 def _pow2ceil(n: int) -> int:
@@ -261,15 +263,13 @@ def _pow2ceil(n: int) -> int:
 def _default_lanes(capacity: int) -> int:
     """Lanes for a chunk of ``capacity`` members. A chunk's time is about
     max(total steps / lanes, steps of its longest member) x (cost of one step of all
-    lanes), and a step's cost per lane falls with the lanes (vectorization) down to
-    about 32 lanes. An eighth of the members keeps the first term near the second for
-    step counts that differ many-fold (chosen by timing lane counts on the cat's
-    unequal batch of benchmarks/batch_throughput.py). Up to 128 members, one lane: a
-    loop over one member's numbers is small enough for XLA to compile into one
-    function (nhjax/_xla_flags.py), which beats narrow vectors (4-16 lanes)."""
-    if capacity <= 128:
-        return 1
-    return int(min(_MAX_LANES, max(32, _pow2ceil(capacity // 8))))
+    lanes); a step's cost per lane falls with the lanes (vectorization) down to about 32
+    lanes, and the last few members of a chunk are finished one lane at a time
+    (lockstep.py). An eighth of the members, 32 to _MAX_LANES (at most the chunk's
+    members), keeps the first term near the second for step counts that differ many-fold
+    (chosen by timing lane counts on the cat's unequal batches of
+    benchmarks/batch_throughput.py)."""
+    return int(min(capacity, _MAX_LANES, max(32, _pow2ceil(capacity // 8))))
 
 
 def _plan(B: int, workers: int, chunk_size: int):
@@ -439,8 +439,8 @@ def simulate_batch(
         of at least 64 x ``workers`` members is split into at least ``workers`` chunks.
         A chunk's capacity is a power of two (or chunk_size): batches of other sizes up
         to it reuse the compiled program.
-    lanes : members stepped together in a chunk (default: one up to 128 members per
-        chunk, else an eighth of them, 32 to 512); when one ends, its lane takes the
+    lanes : members stepped together in a chunk (default: an eighth of a chunk's
+        members, 32 to 128, at most all of them); when one ends, its lane takes the
         next member.
     workers : concurrent chunks (default: the number of local devices, or 2 threads
         on a single CPU device when the machine has at least 2 cores).
