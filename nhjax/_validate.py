@@ -823,7 +823,7 @@ def solver_settings(*, rtol=None, atol=None, dt0=None, max_steps=None, constrain
     for nm, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("constraint_tol", constraint_tol)):
         if v is None or is_traced(v):
             continue
-        positive(nm, v, owner=owner)
+        positive(nm, v, owner=owner, as_float=np.ndim(v) == 0)  # a check: no device array made
     if max_steps is not None:
         integer("max_steps", max_steps, minimum=1, owner=owner, what="budget of solver steps")
 
