@@ -249,8 +249,8 @@ def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
     """Members whose step counts differ more than 10x, fewer lanes than members (each lane
     is refilled several times), saved times in between and a member stopped by the chart
     guard: every member equals its own simulate() to 1e-12 with the same step counts.
-    With 8 lanes the last members are finished one lane at a time (lockstep.py's tail),
-    with saved times in between and with the end states only."""
+    With 8 lanes and the end states only, the last members are finished one lane at a
+    time (lockstep.py's tail)."""
     cat = FallingCat()
     chi_dots = [0.5, 9.0, 0.3, 0.6, 5.0, 0.4, 0.7, 30.0, 0.2, 0.5]
     if lanes == 8:

@@ -33,11 +33,11 @@ reached, guard, failure, step budget) stays in its lane until R = L/16 lanes
 are idle, then every idle lane writes its member's results into the member's
 own slot and takes the next member of the queue. Once the queue is empty and at
 most L/4 lanes still run, those members are finished one at a time in a one-lane
-loop, which XLA compiles into one function: a step of all lanes costs about as much
-as a step of one, so a few long members would otherwise keep every lane stepping.
-The stepping loop carries only the lanes, so it stays small; a guard's dense output
-is recomputed after the loop for the members that stopped, instead of being stored
-every step.
+loop: a step of the lanes costs as much with one member running as with L, so a few
+long members would otherwise keep every lane stepping. The stepping loop carries
+only the lanes, so it stays small (XLA compiles it into one function,
+nhjax/_xla_flags.py); a guard's dense output is recomputed after the loop for the
+members that stopped, instead of being stored every step.
 
 Not covered (``simulate_batch`` falls back to vmapped diffrax): differentiation
 (the loop has no reverse-mode rule). sin/cos inside a while loop or a conditional
@@ -168,10 +168,6 @@ def _put(tree, idx, vals):
     out-of-range indices are dropped (indices must be unique: callers give the dropped
     entries distinct out-of-range values)."""
     return jtu.tree_map(lambda a, v: a.at[..., idx].set(v, mode="drop", unique_indices=True), tree, vals)
-
-
-#: Largest saved-states buffer (bytes) for which the tail's one-lane loop is used.
-_TAIL_YS_BYTES = 16384
 
 
 def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, lanes=None, fast_trig=True):
@@ -442,14 +438,13 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         return c, bad | b
 
     # The tail: once the queue is empty and at most T lanes still run, those members are
-    # finished one at a time in a one-lane loop. A step of all L lanes costs about as much
-    # as a step of one (kernel dispatch, not arithmetic, dominates at these widths), and a
-    # loop over one member's numbers is small enough for XLA to compile into one function
-    # (nhjax/_xla_flags.py), ~20x cheaper per step than a step of the lanes. So a few long
-    # members no longer keep L lanes stepping for the last hundreds of steps. Not with
-    # many saved times: the saved-states buffer then makes the one-lane loop large.
-    ys_bytes = 0 if ends_only else sum(a.size * a.dtype.itemsize for a in jtu.tree_leaves(c["ys"]))
-    T = L // 4 if (L >= 8 and ys_bytes <= _TAIL_YS_BYTES) else 0
+    # finished one at a time in a one-lane loop. A step of the lanes costs as much with one
+    # member running as with all L; the one-lane loop, compiled into one function like the
+    # lanes' (nhjax/_xla_flags.py), costs a fraction of it per step, so a few long members
+    # no longer keep L lanes stepping for the last hundreds of steps. Only without saved
+    # times in between: their writes (a scatter) keep XLA from compiling a loop into one
+    # function, and a one-lane loop run kernel by kernel costs about what the lanes' does.
+    T = L // 4 if (L >= 8 and ends_only) else 0
 
     def in_tail(c):
         return (c["next"] >= n_run) & (jnp.sum(active_of(c)) <= T)
