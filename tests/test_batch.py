@@ -244,20 +244,21 @@ def test_several_local_devices(tmp_path):
     assert loaded[0] == 0 and loaded[1] >= 2  # the second process ran stored executables
 
 
-@pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), (8, 2)])
+@pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), (8, "many"), (8, 2)])
 def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
     """Members whose step counts differ more than 10x, fewer lanes than members (each lane
     is refilled several times), saved times in between and a member stopped by the chart
     guard: every member equals its own simulate() to 1e-12 with the same step counts.
-    With 8 lanes and the end states only, the last members are finished one lane at a
-    time (lockstep.py's tail)."""
+    With 8 lanes the last members are finished one lane at a time (lockstep.py's tail);
+    with 400 saved times the lanes write them into the members' slots directly instead
+    of keeping their own (lockstep.py's lane_saves)."""
     cat = FallingCat()
     chi_dots = [0.5, 9.0, 0.3, 0.6, 5.0, 0.4, 0.7, 30.0, 0.2, 0.5]
     if lanes == 8:
         chi_dots += [0.45, 12.0, 0.35, 2.0, 0.25, 20.0, 0.55, 0.65, 1.0, 0.3]
     X = jnp.stack([cat.initial_state(0.8, chi_dot=c) for c in chi_dots])
     X = X.at[5].set(cat.initial_state(0.3, theta_dot=-1.0))  # reaches sin(theta) = 0
-    ts = jnp.array([0.0, 0.1, 0.27, 1.3, 3.0]) if saveat == "times" else saveat
+    ts = {"times": jnp.array([0.0, 0.1, 0.27, 1.3, 3.0]), "many": jnp.linspace(0.0, 3.0, 400)}.get(saveat, saveat)
     kw = dict(rtol=1e-9, atol=1e-9, saveat=ts, on_guard="stop")
     tr = nhjax.simulate_batch(cat, X, 3.0, lanes=lanes, **kw)
     steps = np.asarray(tr.num_accepted_steps)
@@ -272,7 +273,7 @@ def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
         np.testing.assert_allclose(tr.xs[i, :n], one.xs[:n], rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(tr.x_end[i], one.x_end, rtol=1e-11, atol=1e-12)
         np.testing.assert_allclose(tr.invariant_drift["energy"][i], one.invariant_drift["energy"], atol=1e-12)
-        if i == 5 and saveat == "times":  # nothing saved after the event time
+        if i == 5 and saveat in ("times", "many"):  # nothing saved after the event time
             assert n < len(ts) and not np.isfinite(tr.ts[5, n:]).any()
 
 

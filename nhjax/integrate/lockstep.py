@@ -170,6 +170,10 @@ def _put(tree, idx, vals):
     return jtu.tree_map(lambda a, v: a.at[..., idx].set(v, mode="drop", unique_indices=True), tree, vals)
 
 
+#: Largest per-lane saved-states buffer (bytes, all lanes) kept in the lanes (see lane_saves).
+_LANE_SAVES_BYTES = 65536
+
+
 def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, lanes=None, fast_trig=True):
     """Solve the members of ``problem`` (an ``adjoint._Problem`` whose array leaves carry a
     trailing member axis of size M) from ``y0`` (leaves ``[..., M]``) with ``args``
@@ -290,6 +294,21 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     start_rows = _Rows((pr_arr, args_arr, y0, starts))
     start_table = start_rows.pack((pr_arr, args_arr, y0, starts))
 
+    lane_saves = False
+    if not ends_only:  # the saved states
+        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
+
+        def no_saves(K):
+            return jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape[:-1] + (K,), jnp.inf, e.dtype), ex)
+
+        # Few saved times: each lane keeps its member's saved states, written by a select
+        # and moved to the member's slot when it ends, so that the stepping loop has no
+        # scatter (XLA compiles no loop with a scatter into one function). Many: a select
+        # over all of them per save costs more than the kernels, and the lanes write into
+        # the members' slots directly (a scatter per save).
+        row_bytes = sum(int(np.prod(e.shape[:-1], dtype=int)) * e.dtype.itemsize for e in jtu.tree_leaves(ex))
+        lane_saves = n_ts * row_bytes * L <= _LANE_SAVES_BYTES
+
     def start_values(new):
         """Lane values of members ``new`` ``[K]`` at their start (diffeqsolve's initialisation)."""
         pr, a, y, (tnext, cstate, sstate, floor, ev) = start_rows.unpack(
@@ -301,6 +320,8 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
                     num_steps=zi, num_accepted=zi, num_rejected=zi)
         if not ends_only:
             vals["save_index"] = zi
+        if lane_saves:
+            vals["ys"] = no_saves(new.shape[0])
         if event is not None:
             vals.update(ev_value=ev, ev_mask=f, ev_tprev=t0, ev_tnext=tnext, ev_y=y, ev_sstate=sstate,
                         ev_made_jump=f)
@@ -312,9 +333,10 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     c["next"] = jnp.minimum(n_run, L)
     if event is not None:
         out["ev_sstate"] = jtu.tree_map(lambda s: jnp.zeros(s.shape[:-1] + (M,), s.dtype), c["sstate"])
-    if not ends_only:  # the saved states, written by member index as the lanes pass save times
-        ex = vm(lambda pr, a, yy: sub.fn(pr.t0, yy, a), problem, args, y0)
-        c["ys"] = jtu.tree_map(lambda e: jnp.full((n_ts,) + e.shape, jnp.inf, e.dtype), ex)
+    if lane_saves:
+        out["ys"] = no_saves(M)
+    elif not ends_only:
+        c["ys"] = no_saves(M)
 
     def active_of(c):
         t1 = problem_of(c["pr"]).t1
@@ -333,6 +355,8 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
                     result=jnp.where(running, diffrax.RESULTS.max_steps_reached._value, c["result"]))
         if not ends_only:
             vals["save_index"] = c["save_index"]
+        if lane_saves:
+            vals["ys"] = c["ys"]
         if event is not None:
             vals.update(ev_mask=c["ev_mask"], ev_tprev=c["ev_tprev"], ev_tnext=c["ev_tnext"],
                         ev_y=c["ev_y"], ev_sstate=c["ev_sstate"], ev_made_jump=c["ev_made_jump"])
@@ -405,12 +429,19 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
                     return sub.fn(t, interpolation(t0_, t1_, d).evaluate(t), a_)
 
                 vals = vm(value, pr, a, c["tprev"], c["tnext"], dense, t_s)
-                row = jnp.where(pend, idx, n_ts)  # out of range: dropped
-                col = jnp.where(pend, c["mem"], M + jnp.arange(idx.shape[0]))  # unique, also where dropped
-                ys = jtu.tree_map(
-                    lambda buf, v: buf.at[row, ..., col].set(jnp.moveaxis(v, -1, 0), mode="drop",
-                                                             unique_indices=True),
-                    ys, vals)
+                row = jnp.where(pend, idx, n_ts)  # out of range: not written
+                if lane_saves:
+                    hit = jnp.arange(n_ts)[:, None] == row[None, :]  # [n_ts, K]
+                    ys = jtu.tree_map(
+                        lambda buf, v: jnp.where(hit.reshape((n_ts,) + (1,) * (buf.ndim - 2) + hit.shape[1:]),
+                                                 v[None], buf),
+                        ys, vals)
+                else:
+                    col = jnp.where(pend, c["mem"], M + jnp.arange(idx.shape[0]))  # unique, also where dropped
+                    ys = jtu.tree_map(
+                        lambda buf, v: buf.at[row, ..., col].set(jnp.moveaxis(v, -1, 0), mode="drop",
+                                                                 unique_indices=True),
+                        ys, vals)
                 return idx + pend, ys
 
             idx, ys = jax.lax.while_loop(lambda sc: jnp.any(pending(sc)), save_one,
@@ -441,10 +472,10 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     # finished one at a time in a one-lane loop. A step of the lanes costs as much with one
     # member running as with all L; the one-lane loop, compiled into one function like the
     # lanes' (nhjax/_xla_flags.py), costs a fraction of it per step, so a few long members
-    # no longer keep L lanes stepping for the last hundreds of steps. Only without saved
-    # times in between: their writes (a scatter) keep XLA from compiling a loop into one
-    # function, and a one-lane loop run kernel by kernel costs about what the lanes' does.
-    T = L // 4 if (L >= 8 and ends_only) else 0
+    # no longer keep L lanes stepping for the last hundreds of steps. Not when the lanes
+    # write saved states into the members' slots: with that scatter the one-lane loop runs
+    # kernel by kernel and costs about what a step of the lanes does.
+    T = L // 4 if (L >= 8 and (ends_only or lane_saves)) else 0
 
     def in_tail(c):
         return (c["next"] >= n_run) & (jnp.sum(active_of(c)) <= T)
@@ -466,7 +497,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     c, outp, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out_rows.pack(out), jnp.zeros((), bool)))
 
     if T:
-        shared = ("next", "ys")
+        shared = ("next",) if lane_saves or ends_only else ("next", "ys")
         lane_part = lambda c: {k: v for k, v in c.items() if k not in shared}  # noqa: E731
 
         def finish_one(i, c):
@@ -522,7 +553,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     else:
         rows = jnp.arange(n_ts)[:, None]
         ts = jnp.where(rows < o["save_index"][None], problem.sub.ts, jnp.inf)
-        ys = c["ys"]
+        ys = o["ys"] if lane_saves else c["ys"]
         if event is not None:  # nothing saved after a guard's event time
             late = ts > tfinal[None]
             ts = jnp.where(late, jnp.inf, ts)
