@@ -843,9 +843,15 @@ def available_memory() -> int:
         return 1 << 62
 
 
+#: Needs up to this many bytes are not checked (reading /proc/meminfo costs more).
+_MEMORY_CHECK_FROM = 2**26
+
+
 def check_memory(need_bytes, what, fix, *, owner="simulate", fraction=0.8):
     """ResourceError before allocating if ``need_bytes`` exceeds ``fraction`` of the
-    available memory."""
+    available memory (needs of at most 64 MiB pass unchecked)."""
+    if need_bytes <= _MEMORY_CHECK_FROM:
+        return
     avail = available_memory()
     if need_bytes > fraction * avail:
         raise ResourceError(
@@ -862,13 +868,11 @@ def simulate_memory(system, x0, saveat, *, max_steps=None, stores_steps=False, o
     n_save = save_times_count(saveat)
     per_time = n_state + int(getattr(system, "control_dim", 0) or 0) + 24
     need = 8.0 * n_save * per_time * 3
-    if need > 2**26:  # only then is it worth reading /proc/meminfo
-        check_memory(need, f"saving {n_save} times of a state of {n_state} numbers",
-                     "save fewer times (saveat=2 keeps t0 and t1; an array of the times you need), or split "
-                     "the horizon into several calls", owner=owner)
+    check_memory(need, f"saving {n_save} times of a state of {n_state} numbers",
+                 "save fewer times (saveat=2 keeps t0 and t1; an array of the times you need), or split "
+                 "the horizon into several calls", owner=owner)
     if stores_steps and max_steps is not None:
         need = 8.0 * int(max_steps) * n_state * 9
-        if need > 2**26:
-            check_memory(need, f"a differentiated solve recording max_steps={int(max_steps)} steps of "
-                         f"{n_state} numbers", "lower max_steps (DiscreteAdjoint(max_steps=...)) or "
-                         "differentiate shorter horizons", owner=owner)
+        check_memory(need, f"a differentiated solve recording max_steps={int(max_steps)} steps of "
+                     f"{n_state} numbers", "lower max_steps (DiscreteAdjoint(max_steps=...)) or "
+                     "differentiate shorter horizons", owner=owner)

@@ -528,10 +528,9 @@ def simulate_batch(
     # Memory: the saved states of the whole batch must fit (ResourceError, a MemoryError).
     n_save = save_times_count(saveat)
     state_bytes = sum(np.asarray(a).size for a in jtu.tree_leaves(ex_x0)) * 8
-    need = B * n_save * state_bytes * 3  # states, plus invariants/us/work headroom
-    if need > 2**26:  # only then is it worth reading /proc/meminfo
-        check_memory(need, f"keeping the saved states ({B} members x {n_save} saved times x {state_bytes} bytes)",
-                     "save fewer times (saveat=2 keeps t0 and t1) or split the batch", owner=owner)
+    check_memory(B * n_save * state_bytes * 3,  # states, plus invariants/us/work headroom
+                 f"keeping the saved states ({B} members x {n_save} saved times x {state_bytes} bytes)",
+                 "save fewer times (saveat=2 keeps t0 and t1) or split the batch", owner=owner)
 
     devices = jax.local_devices()
     if workers is None:

@@ -497,18 +497,17 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
     c, outp, bad = jax.lax.while_loop(queue_left, run_lanes, (c, out_rows.pack(out), jnp.zeros((), bool)))
 
     if T:
-        shared = ("next",) if lane_saves or ends_only else ("next", "ys")
-        lane_part = lambda c: {k: v for k, v in c.items() if k not in shared}  # noqa: E731
+        # every entry of c is per lane here (the saved states too, when any) but the queue's
+        # position, which the body leaves alone
+        lane_part = lambda c: {k: v for k, v in c.items() if k != "next"}  # noqa: E731
 
         def finish_one(i, c):
             j = tail_lanes[i]
 
             def run(c):
-                one = dict(_take(lane_part(c), j[None]), **{k: c[k] for k in shared if k in c})
+                one = dict(_take(lane_part(c), j[None]), next=c["next"])
                 one = jax.lax.while_loop(lambda o: jnp.any(active_of(o)), body, one)
-                c = dict(c, **{k: one[k] for k in shared if k in one})
-                c.update(_put(lane_part(c), j[None], lane_part(one)))
-                return c
+                return dict(c, **_put(lane_part(c), j[None], lane_part(one)))
 
             return jax.lax.cond(j < L, run, lambda c: c, c)
 
