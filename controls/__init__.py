@@ -1,6 +1,6 @@
 """Optimal control on nhjax systems: direct (optax through differentiable
 simulations, single or multiple shooting, augmented Lagrangian) and indirect
-(Pontryagin, costate shooting on optimistix), SQP for single shooting (the
+(Pontryagin, costate shooting by Newton or Levenberg–Marquardt), SQP for single shooting (the
 default of solve_direct: damped-BFGS Hessians, exact constraint Jacobians,
 control bounds in its QP), a feasible-path Newton direct solver for small
 strongly-curved problems, with a residual check of the

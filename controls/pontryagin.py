@@ -15,7 +15,8 @@ task here); ``u_star="newton"`` iterates for general H. Box bounds clip u*
 (exact when d2H/du2 is diagonal).
 
 Shooting: unknowns z = (p(0), nu); residuals (psi(x(T)), p(T) - dPhi/dx -
-(dpsi/dx)^T nu); solved with optimistix (Newton or Levenberg–Marquardt).
+(dpsi/dx)^T nu); solved by Newton or Levenberg–Marquardt on the residual and its
+Jacobian from one forward-mode pass (``_shooting_root``).
 Multiple shooting adds the (x, p) at interior nodes and their continuity.
 ``continuation`` walks a parameter (e.g. the target turn from 0 to pi) with
 warm starts. ``pmp_residual`` checks the optimality conditions of any
@@ -37,7 +38,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 import nhjax
 from nhjax._linalg import solve as small_solve
@@ -110,8 +110,8 @@ class IndirectResult:
     residual : max |shooting residual| at the solution (terminal constraints,
         transversality and, for multiple shooting, the continuity of (x, p) at the
         nodes).
-    converged : True when the residual is finite and below 1e3 * tol (optimistix's
-        Newton / Levenberg-Marquardt stops at rtol = atol = tol on its own measure).
+    converged : True when the residual is finite and below 1e3 * tol (the iteration
+        stops at max |r| <= tol, or when its steps fall below tol relative to z).
     message : "converged", or why not.
     trajectory : an ``nhjax.Trajectory`` of (x, p) (``xs`` is (401, 2n), the state then
         the costate) at 401 equally spaced times on [0, T].
@@ -149,7 +149,7 @@ def _terminal_residual(ocp, xT, pT, nu):
 
 
 class _Shooting(eqx.Module):
-    """Shooting residuals as a pytree (so optimistix compiles them once per problem structure)."""
+    """Shooting residuals as a pytree (so the root find compiles once per problem structure)."""
 
     ham: HamiltonianSystem
     rtol: jax.Array
@@ -172,23 +172,83 @@ class _Shooting(eqx.Module):
                                 (ends[:-1] - nodes[1:]).reshape(-1)])
 
 
-def _residual_fn(z, shooting):
-    return shooting.residual(z)
+def _value_and_jacobian(z, shooting):
+    """The shooting residual and its Jacobian from one forward-mode pass: ``jacfwd``
+    runs the ODE solve once for the primal beside its batched tangents."""
+    jac, value = jax.jacfwd(lambda y: (shooting.residual(y),) * 2, has_aux=True)(z)
+    return value, jac
 
 
-_ROOT_SOLVERS = {}
+def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
+    """Newton's method (``damped=False``) or Levenberg–Marquardt on the shooting
+    residual r(z): z and r(z), and the number of steps taken.
 
+    Each iteration evaluates r and its Jacobian once, at the point it tries, in one
+    forward-mode pass (``_value_and_jacobian``): the compiled loop holds one copy of
+    the extremal's ODE solve. (optimistix's Newton and Levenberg–Marquardt evaluate
+    r and build its Jacobian operator separately, three copies of the solve in one
+    program: about twice the time to trace and compile, and the time to a first
+    answer is mostly that.) The first iteration evaluates at z0 itself.
 
-def _root_solver(name, tol):
-    key = (name, tol)
-    if key not in _ROOT_SOLVERS:
-        if name == "newton":
-            _ROOT_SOLVERS[key] = optx.Newton(rtol=tol, atol=tol)
-        elif name == "lm":
-            _ROOT_SOLVERS[key] = optx.LevenbergMarquardt(rtol=tol, atol=tol)
-        else:
-            raise ProblemError("solver must be 'newton' or 'lm'")
-    return _ROOT_SOLVERS[key]
+    Newton takes every step z <- z - J^-1 r. Levenberg–Marquardt solves
+    (J^T J + mu D) dz = -J^T r (D = diag(J^T J), Marquardt's scaling), accepts the
+    trial point when it lowers |r|^2, and updates mu by the ratio of that decrease to
+    the linearization's prediction (Nielsen's rule). Stops after an accepted step with max|dz| <= tol (1 + max|z|)
+    (as optimistix's Cauchy termination: near a regular root that step also takes r
+    from ~tol to rounding; the caller judges convergence by |r|), at a non-finite
+    trial point (Newton; it keeps the last finite point), or after ``max_steps``
+    steps.
+    """
+    z0 = jnp.asarray(z0, float)
+    n = z0.shape[0]
+
+    def proposal(r, jac, mu):
+        """The step and the decrease of 0.5 |r|^2 that the linearization predicts for it."""
+        if not damped:
+            return -small_solve(jac, r), jnp.ones(())
+        jtj, g = jac.T @ jac, jac.T @ r
+        scale = jnp.maximum(jnp.diag(jtj), jnp.finfo(r.dtype).eps)
+        dz = -small_solve(jtj + mu * jnp.diag(scale), g)
+        return dz, 0.5 * dz @ (mu * scale * dz - g)
+
+    def body(c):
+        k, z, r, jac, mu, nu, _, _ = c
+        first = k == 0
+        dz, predicted = proposal(r, jac, mu)
+        dz = jnp.where(first, 0.0, dz)
+        z_try = jnp.where(first, z0, z + dz)
+        r_try, jac_try = _value_and_jacobian(z_try, shooting)
+        ok = jnp.all(jnp.isfinite(r_try)) & jnp.all(jnp.isfinite(jac_try))
+        gain = 0.5 * (r @ r - r_try @ r_try) / predicted  # actual over predicted decrease
+        accept = first | (ok & ((gain > 0) | (not damped)))
+        r_prev = r
+        z, r, jac = (jnp.where(accept, a, b) for a, b in ((z_try, z), (r_try, r), (jac_try, jac)))
+        # Nielsen's damping update (Madsen, Nielsen & Tingleff, Methods for non-linear
+        # least squares problems, 2004, eq. (2.21))
+        mu = jnp.where(first, mu, jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * gain - 1) ** 3), mu * nu))
+        nu = jnp.where(accept, 2.0, 2 * nu)
+        # (a step this small ends the iteration accepted or not: the residual is at the
+        # floor its rounding allows, or exactly zero)
+        small = ~first & (jnp.max(jnp.abs(dz)) <= tol * (1.0 + jnp.max(jnp.abs(z))))
+        # ... or once within tol when a step no longer divides |r| by 10 (the floor, even
+        # if redundant unknowns keep the steps from shrinking)
+        r_max, r_was = jnp.max(jnp.abs(r)), jnp.max(jnp.abs(jnp.where(accept, r_prev, jnp.inf)))
+        small = small | (accept & ~first & (r_max <= tol) & (r_max > 0.1 * r_was))
+        # Newton stops at a non-finite trial (keeping the last finite point); the damped
+        # iteration rejects it and shortens the step; both stop at a non-finite start
+        going = (ok | damped) & jnp.all(jnp.isfinite(r))
+        return k + 1, z, r, jac, mu, nu, small, going
+
+    def cond(c):
+        k, *_, small, going = c
+        return (k == 0) | ((k <= max_steps) & going & ~small)
+
+    m = jax.eval_shape(shooting.residual, z0).shape[0]
+    # (r, J) before the first evaluation: any finite values (its step is masked out)
+    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.asarray(1e-3), jnp.asarray(2.0),
+             jnp.zeros((), bool), jnp.ones((), bool))
+    k, z, r, *_ = jax.lax.while_loop(cond, body, start)
+    return z, r, k - 1
 
 
 @compiled
@@ -215,16 +275,15 @@ _extremal = compiled(_extremal_body)
 
 
 @compiled
-def _indirect(sh, z0, solver, max_steps, least_squares):
-    """The whole indirect solve as one program: optimistix's root find (or least
-    squares) on the shooting residual, then the extremal from the solution with its
-    cost, the final residual (from the extremal's end for single shooting) and the
-    terminal constraints' violation max |psi(x(T))| there."""
+def _indirect(sh, z0, tol, max_steps, damped: bool):
+    """The whole indirect solve as one program: Newton or Levenberg–Marquardt
+    (``damped``) on the shooting residual (``_shooting_root``), then the extremal from
+    the solution with its cost, the final residual (from the extremal's end for single
+    shooting) and the terminal constraints' violation max |psi(x(T))| there. ``tol`` and
+    ``max_steps`` are arrays: other values do not compile again."""
     ocp = sh.ham.ocp
     n, m = ocp.x0.shape[0], ocp.n_constraints
-    solve = optx.least_squares if least_squares else optx.root_find
-    sol = solve(_residual_fn, solver, z0, args=sh, max_steps=max_steps, throw=False)
-    z = sol.value
+    z, _, steps = _shooting_root(sh, z0, tol, max_steps, damped)
     traj, us, cost = _extremal_body(sh.ham, z[:n], sh.rtol, sh.atol)
     if sh.segments == 1:
         yT = traj.xs[-1]
@@ -232,7 +291,7 @@ def _indirect(sh, z0, solver, max_steps, least_squares):
     else:
         r = sh.residual(z)
     viol = jnp.max(jnp.abs(ocp.terminal(traj.xs[-1, :n])[1])) if m else jnp.zeros(())
-    return z, jnp.max(jnp.abs(r)), sol.stats["num_steps"], traj, us, cost, viol
+    return z, jnp.max(jnp.abs(r)), steps, traj, us, cost, viol
 
 
 def solve_pontryagin(
@@ -252,8 +311,8 @@ def solve_pontryagin(
 ) -> IndirectResult:
     """Indirect shooting for ``ocp`` from a costate guess (default zeros).
 
-    solver : "newton" (optimistix.Newton on the residuals) or "lm"
-        (Levenberg–Marquardt, more robust far from the solution).
+    solver : "newton" (Newton's method on the residuals) or "lm"
+        (Levenberg–Marquardt, more robust far from the solution); see ``_shooting_root``.
     progress : a progress line (tqdm.auto) with the iterations, cost, violation and
         residual when the solve ends (the iteration runs inside one compiled program,
         which has no host callbacks so that JAX's persistent cache keeps it); False: none.
@@ -293,7 +352,7 @@ def solve_pontryagin(
     bar = Progress(progress, 1, f"Pontryagin ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     converged = False
     try:
-        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, _root_solver(solver, tol), max_steps,
+        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, np.asarray(tol, float), np.asarray(max_steps),
                                                         solver == "lm")
         z, res, viol = np.asarray(z), float(res), float(viol)
         if not (np.all(np.isfinite(z)) and np.isfinite(res)):
@@ -444,7 +503,9 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     m = ocp.n_constraints
     if multipliers is not None:
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
-    traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=2)
+    # (saved at n_points only so that a caller's rollout with as many points, e.g.
+    # somersault_free_winding's check, shares its compiled program)
+    traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=n_points)
     xT = np.asarray(traj.xs[0])[-1]
     ham = HamiltonianSystem(ocp)
     rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)

@@ -167,3 +167,35 @@ def test_sqp_with_control_bounds_meets_the_kkt_conditions_of_the_discretized_pro
     np.testing.assert_allclose(p, p_kkt, atol=1e-8)
     np.testing.assert_allclose(d.cost, 0.5 * p_kkt @ M @ p_kkt, rtol=1e-10)
     assert d.cost > 6.0  # dearer than the unbounded optimum
+
+
+class _Arctan(eqx.Module):
+    """r(z) = atan(Q (z - z*)) componentwise, Q a rotation: one root z*."""
+
+    root: jax.Array
+    mix: jax.Array
+
+    def residual(self, z):
+        d = self.mix @ (z - self.root)
+        return jnp.arctan(d)
+
+
+def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
+    """The Pontryagin solver's root find (Newton and Levenberg-Marquardt on a residual
+    and its forward-mode Jacobian): both reach the root of a smooth system to 1e-12
+    from nearby; from far away (|d| = 8: atan's Newton steps overshoot further each
+    time beyond |d| = 1.39) the undamped iteration fails and the damped one converges."""
+    from controls.pontryagin import _shooting_root
+
+    c, s = np.cos(0.3), np.sin(0.3)
+    prob = _Arctan(jnp.array([0.4, -1.3]), jnp.array([[c, -s], [s, c]]))
+    for damped in (False, True):
+        z, r, steps = _shooting_root(prob, jnp.array([0.9, -1.0]), 1e-13, 50, damped)
+        np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
+        assert np.max(np.abs(np.asarray(r))) <= 1e-12 and 1 <= int(steps) <= 30
+    # a start where the undamped iteration does not converge within the budget
+    far = jnp.array([0.4, -1.3]) + prob.mix.T @ jnp.array([8.0, -8.0])
+    z, r, steps = _shooting_root(prob, far, 1e-13, 100, True)
+    np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
+    zn, rn, _ = _shooting_root(prob, far, 1e-13, 100, False)
+    assert not (np.max(np.abs(np.asarray(rn))) <= 1e-12)

@@ -115,8 +115,8 @@ def test_compiled_programs_have_no_host_callbacks():
     ham = pontryagin.HamiltonianSystem(ocp)
     sh = pontryagin._Shooting(ham, jnp.asarray(1e-11), jnp.asarray(1e-11), 1)
     with nan_errors():
-        text = pontryagin._indirect.jitted.lower(sh, jnp.zeros(4), pontryagin._root_solver("newton", 1e-10),
-                                                 100, False).as_text()
+        text = pontryagin._indirect.jitted.lower(sh, jnp.zeros(4), jnp.asarray(1e-10),
+                                                 jnp.asarray(100), False).as_text()
     assert "callback" not in text
 
 

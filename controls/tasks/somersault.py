@@ -198,7 +198,7 @@ class FreeWindingResult:
 
 def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=None,
                             start_windings=(1, 0, -1, 2), polish=True, rtol=1e-10, atol=1e-10,
-                            n_check=401, progress=True, **direct_kw) -> FreeWindingResult:
+                            n_check=201, progress=True, **direct_kw) -> FreeWindingResult:
     """The velocity-controlled somersault with the winding left to the optimizer.
 
     For every starting loop (``loop_guess`` with each of ``start_windings``) the fiber
@@ -209,6 +209,9 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     that ``pmp_residual`` recovers from the direct optimum, and the two costs are
     compared. Every start solves the same problem structure (only the fiber target and
     the guess differ, both arrays), so the direct method compiles once for all starts.
+    n_check : saved points of each start's re-simulation, on which the winding and the
+        smallest theta are measured (the default, pmp_residual's n_points, lets the
+        check of the winner reuse that simulation's compiled program).
     progress : one progress line per start (and one for the polish); False: none.
     """
     t_start = time.perf_counter()
