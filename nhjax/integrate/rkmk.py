@@ -33,6 +33,7 @@ from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -176,20 +177,25 @@ _RK4 = _Tableau(
 )
 
 
-def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0):
+def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
     """The stage loop as a lax.scan: the vector field is traced once instead of once
     per stage (much faster to compile for large vector fields). ``f0=None``: the first
     stage's vector field, f(t0, y0), is evaluated by the scan too (its first iteration,
     at y0 itself), so a step that must recompute it -- after a projection -- still
     holds one copy of the vector field instead of two (compile time and the size of
-    the program, which is also what loading it from the cache costs)."""
+    the program, which is also what loading it from the cache costs). ``redo`` (a
+    scalar bool, with ``f0``): the scan runs from the first stage, which takes ``f0``
+    unless ``redo`` -- then it evaluates f(t0, y0) there, behind a ``lax.cond`` -- so
+    the first step of a solve needs no separate evaluation of the vector field
+    before the loop (one copy of it fewer in the program)."""
     tab = self.tableau
     n = len(tab.c)
     A = np.zeros((n, n))
     for i, ai in enumerate(tab.a):
         A[i, : len(ai)] = ai
     A, c = jnp.asarray(A), jnp.asarray(tab.c)
-    first = 0 if f0 is None else 1
+    first = 0 if (f0 is None or redo is not None) else 1
+    given = f0
     if f0 is None:
         f0 = jax.eval_shape(lambda: terms.vf(t0, y0, args))
         f0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), f0)
@@ -201,13 +207,18 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0):
         y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
         if first == 0:  # stage 0 at y0 exactly (not y0 retracted by a zero sigma)
             y_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), y0, y_i)
-        f_i = terms.vf(t0 + c[i] * h, y_i, args)
+        if redo is None:
+            f_i = terms.vf(t0 + c[i] * h, y_i, args)
+        else:
+            f_i = jax.lax.cond((i == 0) & ~redo, lambda: given, lambda: terms.vf(t0 + c[i] * h, y_i, args))
         k_i = _map(lambda sp, s, f: sp.dexpinv(s, f), spaces, sigma_i, f_i)
         if first == 0:  # k_1 = dexpinv_0(f0) = f0
             k_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), f_i, k_i)
         ks = jtu.tree_map(lambda K, k: K.at[i].set(k), ks, k_i)
         return (ks, f_i, sigma_i), None
 
+    if redo is not None:  # the scan writes stage 0 itself
+        ks0 = jtu.tree_map(jnp.zeros_like, ks0)
     init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0))
     (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(first, n))
     return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last
@@ -224,12 +235,23 @@ class _AbstractRKMK(diffrax.AbstractSolver):
     # is then always reused. Under vmap a lax.cond runs both branches, so this saves
     # one vector-field evaluation per step in batches.
     jumps: bool = eqx.field(default=True, static=True)
+    # With scan_stages and an FSAL tableau: the state carries (first step?, f0) and the
+    # stage scan evaluates the first stage itself where needed (see _stages_scanned),
+    # instead of init evaluating the vector field before the loop. For single solves:
+    # in a lock-step batch, refilled lanes would make every lane evaluate it again.
+    first_stage_in_scan: bool = eqx.field(default=False, static=True)
     _stages_scanned = _stages_scanned
+
+    def _flagged(self):
+        return self.first_stage_in_scan and self.scan_stages and self.tableau.fsal
 
     def order(self, terms):
         return self.tableau.order
 
     def init(self, terms, t0, t1, y0, args):
+        if self._flagged():
+            f0 = jax.eval_shape(lambda: terms.vf(t0, y0, args))
+            return jnp.ones((), bool), jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), f0)
         if self.tableau.fsal:
             return terms.vf(t0, y0, args)
         return None
@@ -241,7 +263,15 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
-        if self.scan_stages and made_jump is True:
+        redo = None
+        if self._flagged():
+            first, solver_state = solver_state
+            # one flag for the whole step, also under jax.vmap (as diffrax's FSAL solvers:
+            # a batched flag would turn the scan's lax.cond into a select that always
+            # evaluates the first stage)
+            redo = eqxi.unvmap_any(jnp.any(first) | jnp.any(made_jump))
+            f0 = solver_state
+        elif self.scan_stages and made_jump is True:
             # every step starts anew (ProjectedSolver says so with a literal True): the
             # scan evaluates the first stage too
             f0 = None
@@ -259,7 +289,7 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         else:
             f0 = terms.vf(t0, y0, args)
         if self.scan_stages:
-            ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0)
+            ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0, redo)
         else:
             ks = [f0]  # k_1 = dexpinv_0(f0) = f0
             f_last, sigma_last = f0, None
@@ -298,6 +328,8 @@ class _AbstractRKMK(diffrax.AbstractSolver):
                 lambda s, k0, k1: _cubic(s, h * k0, h * k1), sigma, ks[0], k_end
             )
         dense_info = dict(y0=y0, coeffs=coeffs, spaces=spaces)
+        if redo is not None:
+            f1 = (jnp.zeros((), bool), f1)
         return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
 
 

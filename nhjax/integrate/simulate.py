@@ -490,11 +490,13 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
 
 def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
                max_steps, stepsize_controller, jump_ts, adjoint, project_steps, track_work, progress,
-               diagnostics=True, runtime_errors=False):
+               diagnostics=True, runtime_errors=False, single=False):
     """Resolve solver, step-size controller, adjoint, save times and the static
     configuration of a solve (shared by simulate and simulate_batch). ``runtime_errors``:
     traced save times and dt0 get the checks diffrax would make, as runtime errors
-    (simulate's solve runs without diffrax's own)."""
+    (simulate's solve runs without diffrax's own). ``single``: one trajectory (the
+    default solver then evaluates its first stage inside its stage scan; see
+    RKMK45's first_stage_in_scan)."""
     spaces = system.spaces
     euclid = _all_euclidean(spaces)
     if jump_ts is None and control is not None and hasattr(control, "breakpoints"):
@@ -507,6 +509,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         solver = RKMK45(
             scan_stages=system.large_vector_field,
             jumps=jump_ts is not None or bool(project_steps),
+            first_stage_in_scan=single,
         )
     elif not euclid and not isinstance(solver, _AbstractRKMK):
         raise TypeError(
@@ -675,7 +678,7 @@ def simulate(
         system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
         atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
         jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
-        progress=bool(progress), diagnostics=diagnostics, runtime_errors=True,
+        progress=bool(progress), diagnostics=diagnostics, runtime_errors=True, single=True,
     )
     t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
     show = np.asarray(bool(progress))
