@@ -179,6 +179,14 @@ def _value_and_jacobian(z, shooting):
     return value, jac
 
 
+#: Levenberg–Marquardt's first damping, relative to diag(J^T J): nearly Gauss-Newton.
+#: Starts are usually close (a direct optimum's costates, a continuation step), where
+#: damping only slows the quadratic convergence (benchmarks/steering_peer.py's
+#: Pontryagin row); a poor step is rejected and the damping then grows quickly
+#: (Nielsen's rule doubles its factor at each rejection).
+_LM_MU0 = 1e-12
+
+
 def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
     """Newton's method (``damped=False``) or Levenberg–Marquardt on the shooting
     residual r(z): z and r(z), and the number of steps taken.
@@ -245,7 +253,7 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
 
     m = jax.eval_shape(shooting.residual, z0).shape[0]
     # (r, J) before the first evaluation: any finite values (its step is masked out)
-    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.asarray(1e-3), jnp.asarray(2.0),
+    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.asarray(_LM_MU0), jnp.asarray(2.0),
              jnp.zeros((), bool), jnp.ones((), bool))
     k, z, r, *_ = jax.lax.while_loop(cond, body, start)
     return z, r, k - 1
