@@ -111,7 +111,8 @@ class IndirectResult:
         transversality and, for multiple shooting, the continuity of (x, p) at the
         nodes).
     converged : True when the residual is finite and below 1e3 * tol (the iteration
-        stops at max |r| <= tol, or when its steps fall below tol relative to z).
+        stops when its steps fall below tol relative to z, or at the residual's
+        floor within tol; see ``_shooting_root``).
     message : "converged", or why not.
     trajectory : an ``nhjax.Trajectory`` of (x, p) (``xs`` is (401, 2n), the state then
         the costate) at 401 equally spaced times on [0, T].
@@ -200,12 +201,16 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
 
     Newton takes every step z <- z - J^-1 r. Levenberg–Marquardt solves
     (J^T J + mu D) dz = -J^T r (D = diag(J^T J), Marquardt's scaling), accepts the
-    trial point when it lowers |r|^2, and updates mu by the ratio of that decrease to
-    the linearization's prediction (Nielsen's rule). Stops after an accepted step with max|dz| <= tol (1 + max|z|)
-    (as optimistix's Cauchy termination: near a regular root that step also takes r
-    from ~tol to rounding; the caller judges convergence by |r|), at a non-finite
-    trial point (Newton; it keeps the last finite point), or after ``max_steps``
-    steps.
+    trial point when it lowers |r|^2, and updates mu by the ratio of that decrease
+    to the linearization's prediction (Nielsen's rule).
+
+    Stops after a step with max|dz| <= tol (1 + max|z|) (as optimistix's Cauchy
+    termination: near a regular root that step also takes r from ~tol to rounding),
+    after an accepted step that ends within max|r| <= tol without dividing max|r|
+    by 10 (the residual's floor, where redundant unknowns can keep the steps from
+    shrinking), at a non-finite trial point (Newton; it keeps the last finite
+    point), at a non-finite start, or after ``max_steps`` steps. The caller judges
+    convergence by |r|.
     """
     z0 = jnp.asarray(z0, float)
     n = z0.shape[0]
