@@ -199,7 +199,9 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
     if f0 is None:
         f0 = jax.eval_shape(lambda: terms.vf(t0, y0, args))
         f0 = jtu.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), f0)
-    ks0 = jtu.tree_map(lambda k: jnp.zeros((n,) + k.shape, k.dtype).at[0].set(k), f0)
+    ks0 = jtu.tree_map(lambda k: jnp.zeros((n,) + k.shape, k.dtype), f0)
+    if first == 1:  # the scan starts at stage 1: stage 0 is the given f0
+        ks0 = jtu.tree_map(lambda K, k: K.at[0].set(k), ks0, f0)
 
     def body(carry, i):
         ks, _, _ = carry
@@ -217,8 +219,6 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
         ks = jtu.tree_map(lambda K, k: K.at[i].set(k), ks, k_i)
         return (ks, f_i, sigma_i), None
 
-    if redo is not None:  # the scan writes stage 0 itself
-        ks0 = jtu.tree_map(jnp.zeros_like, ks0)
     init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0))
     (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(first, n))
     return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last
