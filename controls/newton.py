@@ -7,23 +7,30 @@ inner solves crawl along the curved constraint manifold. It is Miele's
 sequential gradient-restoration algorithm (SGRA) with second-order tangent
 steps:
 
-* restoration: Gauss-Newton projection of the parameters z onto psi(z) = 0 with
-  least change in the metric Q of the cost (the Hessian of int L(t, x0, u) dt in
-  z by Gauss-Legendre quadrature: the exact Hessian of the cost when L depends
-  on u only, e.g. int |u|^2 dt; the identity when that Hessian is singular);
+* restoration: projection of the parameters z onto psi(z) = 0 with least
+  change in the metric Q of the cost (the Hessian of int L(t, x0, u) dt in z by
+  Gauss-Legendre quadrature: the exact Hessian of the cost when L depends on u
+  only, e.g. int |u|^2 dt; the identity when that Hessian is singular). After a
+  tangent step it first uses secant (Broyden) updates of the constraints'
+  Jacobian at the point the step left from, one forward solve per iteration;
+  Gauss-Newton with fresh Jacobians only when that does not converge;
 * multipliers lam = argmin |dJ + A^T lam|, A = dpsi/dz (one forward solve and
   1 + m reverse passes, vmapped);
-* the Hessian H of the Lagrangian J + lam . psi by central differences of its
-  reverse-mode gradient (2 P reverse passes, vmapped);
+* the reduced Hessian Z^T H Z of the Lagrangian J + lam . psi (Z a basis of the
+  null space of A) by one-sided differences of its reverse-mode gradient along
+  the columns of Z (P - m reverse passes, vmapped);
 * a Newton step in the null space of A, with the reduced Hessian's negative
   eigenvalues replaced by their magnitudes (saddle-free Newton), then
   restoration; the step is halved until the restored cost decreases (Armijo).
 
-Converged when max |psi| < ctol and max |dJ + A^T lam| / max |dJ| < gtol. Each
-iteration costs 2 P + m + 1 reverse passes: worth it for P up to ~100.
-Measured on spherical-robot steering (``controls.tasks.sphere_steering``,
-Chebyshev degree 6, 21 parameters): 7-9 iterations from the linearized
-problem's optimum, where ``solve_direct`` needed ~150 s per outer iteration.
+Far from the optimum the iterates need not be exact, so the simulations first
+run at ``loose_tol`` (1e-6, unless the requested tolerances are looser) until the
+relative stationarity falls below ``LOOSE_UNTIL`` (or a line search fails
+there); then the iterate is restored at the requested tolerances and the
+iteration goes on there. The tolerances are arguments of the compiled programs,
+so the switch compiles nothing. Converged (at the requested tolerances only)
+when max |psi| < ctol and max |dJ + A^T lam| / max |dJ| < gtol. Each iteration
+costs P + 1 reverse passes and a few forward solves: worth it for P up to ~100.
 """
 
 from __future__ import annotations
@@ -49,6 +56,10 @@ from .problem import (
 )
 
 __all__ = ["solve_direct_newton"]
+
+#: Relative stationarity below which the iteration leaves the loose simulations
+#: (``loose_tol``) for the requested tolerances.
+LOOSE_UNTIL = 1e-3
 
 class _Shooting(eqx.Module):
     """Single shooting: parameters -> (cost, terminal constraints), as one pytree."""
@@ -112,13 +123,17 @@ def _control_cost_hessian(ocp, param, z):
     return jax.hessian(quad)(z)
 
 
-def _fd_hessian(sh, z, w, h):
-    """Central differences of the gradient of w . (J, psi): 2 P reverse passes (vmapped)."""
-    P = z.shape[0]
-    E = h * np.eye(P)
-    G = np.asarray(_lagrangian_gradients(sh, np.concatenate([z[None, :] + E, z[None, :] - E]), np.asarray(w)))
-    H = (G[:P] - G[P:]) / (2 * h)
-    return 0.5 * (H + H.T)
+def _reduced_hessian(sh, z, g, Z, w, h):
+    """Z^T H Z, H the Hessian of w . (J, psi) at z, by one-sided differences of its
+    reverse-mode gradient along the columns of Z (P - m reverse passes, vmapped; ``g``
+    the gradient at z, which the iteration already has). Only the reduced Hessian
+    enters the null-space step, so the directions of A's rows are not differenced."""
+    k = Z.shape[1]
+    if k == 0:
+        return np.zeros((0, 0))
+    G = np.asarray(_lagrangian_gradients(sh, z[None, :] + h * Z.T, np.asarray(w)))
+    R = (G - g[None, :]) @ Z / h
+    return 0.5 * (R + R.T)
 
 
 def _stationarity(g, A, free=None):
@@ -129,6 +144,39 @@ def _stationarity(g, A, free=None):
     lam = -np.linalg.lstsq(A[:, free].T, g[free], rcond=None)[0] if free.any() and m else np.zeros(m)
     r = (g + A.T @ lam)[free]
     return float(np.abs(r).max(initial=0.0) / max(np.abs(g).max(), 1e-300)), lam
+
+
+def _restore_broyden(sh, z, y, A, Q, Qi, tol, max_iter=20):
+    """Restoration onto psi = 0 by least-change (Q-metric) steps with a secant
+    (Broyden) Jacobian: each iteration one forward solve, no reverse pass. A starts as
+    the constraints' Jacobian at the point the step left from (the step lies in its
+    null space) and after each trial step s, accepted or not, takes the rank-one
+    correction A += (dpsi - A s) (Q s)^T / (s^T Q s) that makes it exact along s, so the
+    curvature of the constraints across the step is learned instead of recomputed.
+    It goes on below ``tol`` while the violation falls (so that the restored cost,
+    compared by the line search, carries no first-order trace of a leftover
+    violation). Returns (z, y, ok, n_solves); ok is False when the violation stays
+    above ``tol`` (the caller then restores with Gauss-Newton and fresh Jacobians)."""
+    v = np.abs(y[1:]).max()
+    fails = 0
+    for it in range(max_iter):
+        c = y[1:]
+        s = -Qi @ A.T @ np.linalg.solve(A @ Qi @ A.T, c)
+        y_t = _values(sh, z + s)
+        if not np.all(np.isfinite(y_t)):
+            break
+        v_t = np.abs(y_t[1:]).max()
+        Qs = Q @ s
+        A = A + np.outer(y_t[1:] - c - A @ s, Qs) / (s @ Qs)
+        if v_t < v:
+            z, y, v, fails = z + s, y_t, v_t, 0
+            if v <= 1e-3 * tol:
+                break
+        else:
+            fails += 1
+            if fails >= 2 or v <= tol:
+                break
+    return z, y, bool(v <= tol), it + 1
 
 
 def _project(sh, z, y, D, Qi, tol, max_iter=10):
@@ -158,7 +206,8 @@ def _project(sh, z, y, D, Qi, tol, max_iter=10):
 
 
 def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=1e-10, gtol=1e-7,
-                        max_iter=60, fd_step=1e-5, verbose=False, progress=True) -> DirectResult:
+                        max_iter=60, fd_step=1e-5, loose_tol=1e-6, verbose=False,
+                        progress=True) -> DirectResult:
     """The direct single-shooting method, with a feasible-path Newton solver
     (gradient-restoration, Miele's SGRA with second-order tangent steps): an
     alternative to ``controls.solve_direct`` for problems whose constraints are
@@ -180,18 +229,24 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     param : a parametrization with P > m parameters; guess : (P,) start.
     rtol, atol : tolerances of the simulations; ctol, gtol : stopping tolerances
         (violation, relative stationarity); fd_step : difference step of the
-        Hessian; verbose : print one line per iteration; progress : a progress line
+        Hessian; loose_tol : rtol and atol of the simulations in the first iterations
+        (None: ``rtol``, ``atol`` throughout); verbose : print one line per iteration; progress : a progress line
         (tqdm.auto) with the iteration, cost, violation, stationarity and step (False: none).
 
     Each iteration, from a feasible z (psi(z) = 0 to ``ctol``):
     * multipliers lam = argmin |dJ + A^T lam| (A = dpsi/dz, 1 + m reverse passes);
-    * the Hessian H of the Lagrangian J + lam.psi by central differences of its
-      reverse-mode gradient (2 P reverse passes, vmapped);
+    * the reduced Hessian of the Lagrangian J + lam.psi on the null space of A, by
+      one-sided differences of its reverse-mode gradient (P - m reverse passes, vmapped);
     * the Newton step in the null space of A, with the reduced Hessian's negative
       eigenvalues replaced by their magnitudes (saddle-free Newton);
-    * restoration: Gauss–Newton projection back onto psi = 0 (least change in
-      the cost's metric Q, the exact Hessian of int |u|^2 dt); the step is halved
-      until the restored cost decreases (Armijo).
+    * restoration back onto psi = 0 (least change in the cost's metric Q, the exact
+      Hessian of int |u|^2 dt): secant updates of A (forward solves only), then
+      Gauss-Newton if needed; the step is halved until the restored cost decreases
+      (Armijo).
+    The first iterations simulate at rtol = atol = ``loose_tol`` until the
+    stationarity falls below ``LOOSE_UNTIL`` (1e-3) or a line search fails there;
+    from there on, and for the answer and its convergence test, at ``rtol``,
+    ``atol`` (``history["rtol"]`` says which, per iteration).
     Converged when max |psi| < ctol and max |dJ + A^T lam| / max |dJ| < gtol.
     Returns a ``controls.DirectResult`` (multipliers lam: dJ + lam . dpsi = 0).
     """
@@ -199,7 +254,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     owner = "solve_direct_newton"
     check_ocp(ocp, owner)
     check_parametrization(param, ocp, owner)
-    check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, fd_step=fd_step,
+    check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, fd_step=fd_step, loose_tol=loose_tol,
                      max_iter=(max_iter, "int"))
     # z and the iteration's algebra live on the host (numpy): an eager jax operation is a
     # dispatch, and in a new process a program of its own
@@ -212,7 +267,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     if m >= P:
         raise ProblemError(f"{P} control parameters cannot meet {m} terminal constraints and still "
                            "optimize: use a finer parametrization")
-    sh = _Shooting(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float))
+    sh_final = _Shooting(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float))
+    # far from the optimum the iterates need not be exact: the first iterations run the
+    # simulations at loose_tol (the same compiled programs: tolerances are arguments)
+    loose = loose_tol is not None and (rtol < loose_tol or atol < loose_tol)
+    sh = _Shooting(ocp, param, jnp.asarray(max(rtol, loose_tol), float),
+                   jnp.asarray(max(atol, loose_tol), float)) if loose else sh_final
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(D)):
         raise ProblemError("the cost, the constraints or their derivatives are not finite at the guess")
@@ -223,14 +283,14 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
         q_eig = np.ones(P)
     Qi = np.linalg.inv(Q)
     floor = 1e-6 * q_eig.max()
-    history = {"cost": [], "violation": [], "stationarity": [], "step": [], "seconds": []}
+    history = {"cost": [], "violation": [], "stationarity": [], "step": [], "rtol": [], "seconds": []}
 
     def record(stat, alpha):
         for k, v in (("cost", float(y[0])), ("violation", float(np.abs(y[1:]).max())), ("stationarity", stat),
-                     ("step", alpha), ("seconds", time.perf_counter() - t_start)):
+                     ("step", alpha), ("rtol", float(sh.rtol)), ("seconds", time.perf_counter() - t_start)):
             history[k].append(v)
         bar.update(iteration=len(history["cost"]), cost=float(y[0]), violation=f"{history['violation'][-1]:.1e}",
-                   stationarity=f"{stat:.1e}", step=f"{alpha:.3g}")
+                   stationarity=f"{stat:.1e}", step=f"{alpha:.3g}", rtol=f"{float(sh.rtol):.0e}")
         if verbose:
             print(f"  {len(history['cost']):3d}: cost {y[0]:.13g}  violation {history['violation'][-1]:.2e}  "
                   f"stationarity {stat:.2e}  step {alpha:.3g}  ({history['seconds'][-1]:.1f} s)", flush=True)
@@ -239,23 +299,40 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     converged = False
     try:
         z, y, D, ok = _project(sh, z, y, D, Qi, ctol, max_iter=30)
+        if not ok and loose:  # the loose simulations may be too rough to restore: go on at the requested ones
+            loose, sh = False, sh_final
+            y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
+            z, y, D, ok = _project(sh, z, y, D, Qi, ctol, max_iter=30)
         if not ok:
             raise ProblemError(
                 "the terminal constraints could not be met from this guess (Gauss-Newton restoration "
                 f"stalled at violation {np.abs(y[1:]).max():.2e}): the target may be unreachable in time T "
                 "with this parametrization, or the guess too far")
-        converged, msg, it, alpha = False, "max_iter reached", 0, 0.0
+        converged, msg, it, alpha, stalled = False, "max_iter reached", 0, 0.0, False
         for it in range(1, max_iter + 1):
             g, A = D[0], D[1:]
             stat, lam = _stationarity(g, A)
+            if loose and (stat < LOOSE_UNTIL or stalled):
+                loose, sh = False, sh_final
+                # the constraints move by about the loose tolerance: restore with the
+                # loose Jacobian (forward solves only), then fall back to Gauss-Newton
+                z, y, ok, _ = _restore_broyden(sh, z, _values(sh, z), D[1:], Q, Qi, ctol)
+                y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
+                if not np.abs(y[1:]).max() <= ctol:
+                    z, y, D, ok = _project(sh, z, y, D, Qi, ctol)
+                    if not ok:
+                        msg = "restoration at the requested tolerances failed"
+                        break
+                g, A = D[0], D[1:]
+                stat, lam = _stationarity(g, A)
             record(stat, alpha)
-            if stat < gtol and np.abs(y[1:]).max() < ctol:
+            if not loose and stat < gtol and np.abs(y[1:]).max() < ctol:
                 converged, msg = True, "converged: constraints and stationarity within tolerance"
                 break
-            H = _fd_hessian(sh, z, np.concatenate([[1.0], lam]), fd_step)
+            w = np.concatenate([[1.0], lam])
             _, S, Vt = np.linalg.svd(A)
             Z = Vt[np.sum(S > 1e-12 * S[0]):].T
-            ev, V = np.linalg.eigh(Z.T @ H @ Z)
+            ev, V = np.linalg.eigh(_reduced_hessian(sh, z, D.T @ w, Z, w, fd_step))
             gr = Z.T @ (g + A.T @ lam)
             d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
             slope = (g + A.T @ lam) @ d
@@ -264,12 +341,22 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                 z_t = z + alpha * d
                 y_t = _values(sh, z_t)
                 if np.all(np.isfinite(y_t)):
-                    _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
-                    z_t, y_t, D_t, ok = _project(sh, z_t, y_t, D_t, Qi, ctol)
+                    # second-order correction with A(z) (the step lies in its null space),
+                    # then fresh Jacobians only if that does not converge
+                    z_c, y_c, ok, n_solves = _restore_broyden(sh, z_t, y_t, A, Q, Qi, ctol)
+                    if ok:
+                        z_t, (y_t, D_t) = z_c, (np.asarray(a) for a in _values_and_jacobian(sh, z_c))
+                        ok = bool(np.abs(y_t[1:]).max() <= ctol)
+                    if not ok:
+                        _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
+                        z_t, y_t, D_t, ok = _project(sh, z_t, y_t, D_t, Qi, ctol, max_iter=6)
                     if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
                         accepted = True
                         break
                 alpha *= 0.5
+            if not accepted and loose:
+                stalled = True  # go on at the requested tolerances
+                continue
             if not accepted:
                 msg = "line search failed (cost not decreasing along the restored step)"
                 if stat < 1e2 * gtol:

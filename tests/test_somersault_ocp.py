@@ -75,6 +75,30 @@ def test_somersault_direct_and_pontryagin_agree(chart_cat, chart_optimum):
     np.testing.assert_allclose(us, ind.controls, atol=5e-4 * np.abs(ind.controls).max())
 
 
+
+def test_feasible_path_newton_simulates_loosely_first_and_lands_on_the_same_optimum(chart_cat, chart_optimum):
+    """solve_direct_newton's first iterations run the simulations at loose_tol (1e-6);
+    its answer is computed at rtol = 1e-10 and is the optimum of the exact-throughout
+    iteration (loose_tol=None) to 1e-10, within the Chebyshev restriction of the
+    indirect optimum."""
+    cat, th0, T = chart_cat
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    param = controls.Chebyshev(10, T, 2)
+    guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
+    d = controls.solve_direct_newton(ocp, param, guess, progress=False)
+    exact = controls.solve_direct_newton(ocp, param, guess, loose_tol=None, progress=False)
+    assert d.converged and exact.converged, (d.message, exact.message)
+    rtols = d.history["rtol"]
+    assert rtols[0] == 1e-6 and rtols[-1] == 1e-10 and sorted(rtols, reverse=True) == rtols
+    assert set(exact.history["rtol"]) == {1e-10}
+    np.testing.assert_allclose(d.cost, exact.cost, rtol=1e-10)
+    # the parameters only to the square root of that: the optimum is flat along some of them
+    np.testing.assert_allclose(d.params, exact.params, atol=1e-3 * float(jnp.max(jnp.abs(exact.params))))
+    assert d.violation < 1e-10
+    # Chebyshev controls are a restriction: not below the indirect optimum (to its accuracy)
+    assert chart_optimum.cost * (1 - 1e-10) <= d.cost < chart_optimum.cost * (1 + 1e-6)
+
+
 def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum):
     """In coordinates smooth at the straight cat the winding is the optimizer's choice. A
     poor start (chi does not wind) crosses theta = 0 and ends on a once-winding optimum
