@@ -10,7 +10,15 @@ from .direct import DirectResult, solve_direct
 from .newton import solve_direct_newton
 from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
 from .sqp import solve_direct_sqp
-from .pontryagin import HamiltonianSystem, IndirectResult, continuation, pmp_residual, solve_pontryagin
+from .pontryagin import (
+    HamiltonianSystem,
+    IndirectResult,
+    continuation,
+    pmp_residual,
+    prepare_pmp_residual,
+    prepare_pontryagin,
+    solve_pontryagin,
+)
 from .problem import OCP, ProblemError, rollout
 
 __all__ = [
@@ -26,6 +34,8 @@ __all__ = [
     "ProblemError",
     "continuation",
     "pmp_residual",
+    "prepare_pmp_residual",
+    "prepare_pontryagin",
     "rollout",
     "solve_direct",
     "solve_direct_newton",

@@ -54,7 +54,8 @@ from .problem import (
     compiled,
 )
 
-__all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "solve_pontryagin"]
+__all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "prepare_pmp_residual",
+           "prepare_pontryagin", "solve_pontryagin"]
 
 
 class HamiltonianSystem(AbstractSystem):
@@ -307,6 +308,37 @@ def _indirect(sh, z0, tol, max_steps, damped: bool):
     return z, jnp.max(jnp.abs(r)), steps, traj, us, cost, viol
 
 
+def _check_vector_ocp(ocp, owner):
+    check_ocp(ocp, owner)
+    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
+        raise ProblemError(f"{owner}: the Pontryagin solver needs a vector state; use the direct methods")
+
+
+def _root_options(tol, max_steps, solver):
+    """_indirect's arguments after the start: tolerance and budget as arrays (other
+    values compile nothing), damping as a static flag."""
+    return np.asarray(tol, float), np.asarray(max_steps), solver == "lm"
+
+
+def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadratic", rtol: float = 1e-11,
+                       atol: float = 1e-11, tol: float = 1e-10, max_steps: int = 100) -> bool:
+    """Trace ``solve_pontryagin``'s program (single shooting, these options) for this
+    problem's structure now and compile it in the background, for a caller that will
+    call it later (e.g. after a direct solve that gives the costates to start from):
+    the compile then overlaps the caller's other work. Returns whether a compile
+    started (not if the program is compiled already or kept on disk)."""
+    owner = "prepare_pontryagin"
+    _check_vector_ocp(ocp, owner)
+    with as_problem_error():
+        nhjax._validate.choice("solver", solver, ("newton", "lm"), owner=owner)
+        nhjax._validate.choice("u_star", u_star, ("quadratic", "newton"), owner=owner)
+    check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"))
+    ham = HamiltonianSystem(ocp, u_star)
+    sh = _Shooting(ham, jnp.asarray(rtol, float), jnp.asarray(atol, float), 1)
+    n, m = ocp.x0.shape[0], ocp.n_constraints
+    return _indirect.prepare(sh, np.zeros(n + m), *_root_options(tol, max_steps, solver))
+
+
 def solve_pontryagin(
     ocp: OCP,
     p0_guess=None,
@@ -365,8 +397,7 @@ def solve_pontryagin(
     bar = Progress(progress, 1, f"Pontryagin ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     converged = False
     try:
-        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, np.asarray(tol, float), np.asarray(max_steps),
-                                                        solver == "lm")
+        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, *_root_options(tol, max_steps, solver))
         z, res, viol = np.asarray(z), float(res), float(viol)
         if not (np.all(np.isfinite(z)) and np.isfinite(res)):
             # say what is wrong with the start, if anything; else the iteration diverged
@@ -492,6 +523,26 @@ def _costate_sweep(ham, control, xT, nu, rtol, atol, n_points, adjoint):
     return ts, xs, ps, us, Hu, Lu, H, L
 
 
+def _sweep_pieces(ocp, rtol, atol):
+    """_costate_sweep's Hamiltonian system, tolerances (arrays) and adjoint."""
+    return (HamiltonianSystem(ocp), jnp.asarray(rtol, float), jnp.asarray(atol, float),
+            diffrax.RecursiveCheckpointAdjoint())
+
+
+def prepare_pmp_residual(ocp: OCP, control, *, rtol=1e-11, atol=1e-11, n_points=201) -> bool:
+    """Trace ``pmp_residual``'s costate sweep for this problem and a control of
+    ``control``'s structure (e.g. the parametrization's signal of any parameters) now
+    and compile it in the background; see ``prepare_pontryagin``."""
+    owner = "prepare_pmp_residual"
+    _check_vector_ocp(ocp, owner)
+    if not callable(control):
+        raise ProblemError(f"{owner}: control must be callable as u(t, x), got {type(control).__name__}")
+    check_tolerances(owner, rtol=rtol, atol=atol, n_points=(n_points, "int", 2))
+    n, m = ocp.x0.shape[0], ocp.n_constraints
+    ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
+    return _costate_sweep.prepare(ham, control, np.zeros(n), np.zeros(m), rt, at, n_points, adj)
+
+
 def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11, n_points=201):
     """How far (x, u) from ``control`` is from satisfying Pontryagin's conditions.
 
@@ -520,9 +571,7 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     # somersault_free_winding's check, shares its compiled program)
     traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=n_points)
     xT = np.asarray(traj.xs[0])[-1]
-    ham = HamiltonianSystem(ocp)
-    rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
-    adj = diffrax.RecursiveCheckpointAdjoint()
+    ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
     if multipliers is None and m == 0:
         nu = np.zeros(0)
     elif multipliers is None:

@@ -114,7 +114,14 @@ def compiled(fn):
                 return jitted(*args, **kwargs)
             return _programs.call(name, counted, args, error_mode="nan", fallback=jitted)
 
+    def prepare(*args):
+        """Trace this program for ``args``'s structure now and compile it in the
+        background (``nhjax._programs.prepare``), for a solver that calls it later."""
+        with nan_errors():
+            return _programs.prepare(name, counted, args, error_mode="nan")
+
     call.jitted = jitted
+    call.prepare = prepare
     return call
 
 

@@ -38,6 +38,7 @@ turns both caches off), capped at ``MAX_BYTES`` (oldest files go first).
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import enum
@@ -307,6 +308,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         quick = quick + (tuple(sorted(options.items())),)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
+    program = _settled(program, quick)
     if program is not None:
         return None if program is _FAILED else program
     try:
@@ -321,6 +323,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         return None
     with _LOCK:
         program = _MEMORY.get(key)
+    program = _settled(program, key)
     if program is None:
         exe_path = folder / f"{key}-{_machine()}.exe"
         program = _load_executable(exe_path)
@@ -339,6 +342,78 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         if quick is not None:
             _MEMORY[quick] = program
     return None if program is _FAILED else program
+
+
+def _settled(program, key):
+    """``program`` from ``_MEMORY``, waiting for it if ``prepare`` is compiling it in the
+    background; None (and forgotten) if that compile failed: the caller compiles it
+    again and meets the error itself."""
+    if not isinstance(program, concurrent.futures.Future):
+        return program
+    try:
+        return program.result()
+    except Exception:  # noqa: BLE001
+        with _LOCK:
+            for k, v in list(_MEMORY.items()):
+                if v is program:
+                    del _MEMORY[k]
+        return None
+
+
+_COMPILER = None
+
+
+def _compiler():
+    global _COMPILER
+    if _COMPILER is None:
+        _COMPILER = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="nhjax-prepare")
+    return _COMPILER
+
+
+def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None) -> bool:
+    """Get ``fn``'s program on ``args``'s structure ready before it is called: traced and
+    lowered now, in the calling thread (tracing reads process-wide settings such as
+    equinox's error mode, which only the caller knows to be right), and compiled by XLA
+    in a background thread, which releases the GIL: a solver that will need several
+    programs compiles the later ones while it compiles and runs the first (2 cores:
+    about the XLA time of the smaller one saved). The call that needs it waits for that
+    compile. Nothing happens if the program is in memory or its executable on disk
+    (loading is quick), or if it cannot be cached. Returns whether a compile started."""
+    folder = directory()
+    if folder is None or jax.config.jax_disable_jit:
+        return False
+    flat = jtu.tree_flatten(args)
+    quick = _quick_key(name, fn, args, error_mode, flat)
+    if quick is _TRACED:
+        return False
+    with _LOCK:
+        if quick is not None and quick in _MEMORY:
+            return False
+    try:
+        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
+    except Uncacheable:
+        return False
+    exe_path = folder / f"{key}-{_machine()}.exe"
+    with _LOCK:
+        if key in _MEMORY:
+            return False
+    if exe_path.exists():
+        return False
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, dyn_def = jtu.tree_flatten(dyn)
+    path = folder / f"{key}.prog"
+    program = _load(path)
+    if program is None:
+        program = _export(fn, static, dyn_def, leaves, path)
+    if program is _FAILED:
+        return False
+    specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
+    future = _compiler().submit(_compile, program, specs, {}, exe_path)
+    with _LOCK:
+        _MEMORY[key] = future
+        if quick is not None:
+            _MEMORY[quick] = future
+    return True
 
 
 def _quick_key(name, fn, args, error_mode=None, flat=None):

@@ -89,6 +89,42 @@ def test_new_numbers_do_not_retrace_and_reach_their_own_optimum():
         np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
 
 
+def test_prepared_solver_programs_are_the_ones_the_solvers_call(tmp_path, monkeypatch):
+    """prepare_pontryagin and prepare_pmp_residual trace the programs that
+    solve_pontryagin and pmp_residual then call (compiled in the background
+    meanwhile): the solvers trace nothing more, and find the closed-form optimum."""
+    from nhjax import _programs
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+
+    class Prepared(ScaledIntegrator):  # a structure no other test has compiled
+        pass
+
+    case = ((0.1, 0.0), (1.2, -0.3), 1.3, 1.5, 0.9)
+    base = problem(*case)
+    ocp = controls.OCP(Prepared(base.system.b), base.x0, base.T, running_cost=base.running_cost,
+                       terminal_constraints=base.terminal_constraints)
+    param = controls.PiecewiseLinear(4, ocp.T, 1)
+    before = dict(TRACES)
+    assert controls.pontryagin.prepare_pontryagin(ocp)
+    assert controls.pontryagin.prepare_pmp_residual(ocp, param.signal(np.zeros(param.size)))
+    prepared = dict(TRACES)
+    assert prepared.get("_indirect", 0) == before.get("_indirect", 0) + 1
+    assert prepared.get("_costate_sweep", 0) == before.get("_costate_sweep", 0) + 1
+    ind = controls.solve_pontryagin(ocp, progress=False)
+    d = controls.solve_direct(ocp, param, jnp.zeros(param.size), progress=False)
+    res = controls.pmp_residual(ocp, d.control)
+    after = dict(TRACES)
+    for name in ("_indirect", "_costate_sweep"):
+        assert after[name] == prepared[name], (name, prepared, after)
+    want = exact_cost(*case)
+    assert ind.converged
+    np.testing.assert_allclose(ind.cost, want, rtol=1e-10)
+    assert res["stationarity"] < 1e-4
+    np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
+
+
 def test_compiled_programs_have_no_host_callbacks():
     """The merit/gradient program of solve_direct and the whole Pontryagin solve lower
     without host callbacks (equinox's runtime errors are traced as NaN); the same merit

@@ -221,3 +221,37 @@ def test_the_key_covers_the_source_of_controls_too(tmp_path, monkeypatch):
     finally:
         monkeypatch.undo()
         _programs._environment.cache_clear()
+
+
+def test_prepare_traces_now_compiles_in_the_background_and_the_call_uses_it(tmp_path, monkeypatch):
+    """prepare() exports the program in the calling thread and compiles it in a worker
+    thread; the later call waits for that compile instead of tracing again, with results
+    equal to plain jit. A prepared compile that fails is compiled again by the call."""
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    fn = _user_function("def h(x, y):\n    return {'z': jnp.tanh(x) @ y}\n", "h")
+    x, y = jnp.linspace(-1.0, 2.0, 6).reshape(2, 3), jnp.array([0.5, -1.0, 2.0])
+    stored = _programs.STATS["stored"]
+    assert _programs.prepare("test-prepare", fn, (x, y))
+    assert _programs.STATS["stored"] == stored + 1  # exported (traced) here, once
+    assert not _programs.prepare("test-prepare", fn, (x + 1.0, y))  # same structure: nothing new
+    pending = [v for v in _programs._MEMORY.values() if hasattr(v, "result")]
+    assert pending, "the compile runs in the background"
+    x2 = x * 3.0
+    out = _programs.call("test-prepare", fn, (x2, y))
+    assert _programs.STATS["stored"] == stored + 1  # the call did not trace it again
+    np.testing.assert_array_equal(out["z"], eqx.filter_jit(fn)(x2, y)["z"])
+
+    # a background compile that fails: the call compiles the program itself
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    real_compile = _programs._compile
+
+    def broken(*a, **k):
+        raise RuntimeError("compile failed in the background")
+
+    monkeypatch.setattr(_programs, "_compile", broken)
+    fn2 = _user_function("def k(x):\n    return {'z': jnp.exp(x) - x}\n", "k")
+    assert _programs.prepare("test-prepare-fail", fn2, (y,))
+    monkeypatch.setattr(_programs, "_compile", real_compile)
+    again = _programs.call("test-prepare-fail", fn2, (y,))
+    np.testing.assert_array_equal(again["z"], eqx.filter_jit(fn2)(y)["z"])

@@ -41,7 +41,7 @@ from nhjax.scenes.falling_cat import FallingCatSmooth
 
 from ..direct import DirectResult, solve_direct
 from ..parametrize import Chebyshev
-from ..pontryagin import IndirectResult, pmp_residual, solve_pontryagin
+from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V
 
 from ..problem import OCP, ProblemError, as_problem_error, compiled, rollout
@@ -218,10 +218,16 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     param = Chebyshev(10, T, 2) if param is None else param
     f0 = float(cat.f(theta0))
     starts, best, best_ocp = [], None, None
-    for k in start_windings:
+    for i, k in enumerate(start_windings):
         phi_end = 2 * np.pi * k * (1 - f0) if k else 0.0
         j = int(np.round((phi_end - turn) / (2 * np.pi)))
         ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
+        if i == 0:
+            # the check's and the polish's programs (the same for every j) compile in
+            # the background while the direct method compiles and runs
+            prepare_pmp_residual(ocp, param.signal(np.zeros(param.size)))
+            if polish:
+                prepare_pontryagin(ocp)
         d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol,
                          progress=f"start winding {k:+d}" if progress else False, **direct_kw)
         traj, _, _ = rollout(ocp, d.control, rtol=rtol, atol=atol, saveat=n_check)
