@@ -59,7 +59,8 @@ def warm_up(ocp, param, z, rtol):
     w = jnp.ones(ocp.n_constraints + 1)
     jax.block_until_ready(nt._values_jit(sh, z))
     jax.block_until_ready(nt._values_and_jacobian(sh, z))
-    jax.block_until_ready(nt._lagrangian_gradients(sh, jnp.stack([z] * (2 * z.shape[0])), w))
+    # the reduced Hessian differences the gradient along the P - m null-space directions
+    jax.block_until_ready(nt._lagrangian_gradients(sh, jnp.stack([z] * (z.shape[0] - ocp.n_constraints)), w))
     jax.block_until_ready(nt._control_cost_hessian(ocp, param, z))
     return time.perf_counter() - t0
 
