@@ -153,13 +153,13 @@ def _restore_broyden(sh, z, y, A, Q, Qi, tol, max_iter=20):
     null space) and after each trial step s, accepted or not, takes the rank-one
     correction A += (dpsi - A s) (Q s)^T / (s^T Q s) that makes it exact along s, so the
     curvature of the constraints across the step is learned instead of recomputed.
-    It goes on below ``tol`` while the violation falls (so that the restored cost,
-    compared by the line search, carries no first-order trace of a leftover
-    violation). Returns (z, y, ok, n_solves); ok is False when the violation stays
-    above ``tol`` (the caller then restores with Gauss-Newton and fresh Jacobians)."""
+    Only steps that lower the violation are taken. It goes on below ``tol`` while the
+    violation falls (so that the restored cost, compared by the line search, carries
+    no first-order trace of a leftover violation). Returns (z, y, ok); ok is False
+    when the violation stays above ``tol``."""
     v = np.abs(y[1:]).max()
     fails = 0
-    for it in range(max_iter):
+    for _ in range(max_iter):
         c = y[1:]
         s = -Qi @ A.T @ np.linalg.solve(A @ Qi @ A.T, c)
         y_t = _values(sh, z + s)
@@ -176,7 +176,22 @@ def _restore_broyden(sh, z, y, A, Q, Qi, tol, max_iter=20):
             fails += 1
             if fails >= 2 or v <= tol:
                 break
-    return z, y, bool(v <= tol), it + 1
+    return z, y, bool(v <= tol)
+
+
+def _restore(sh, z, y, A, Q, Qi, tol, gn_iter):
+    """Restoration from z (values y) with A the constraints' Jacobian at a nearby point:
+    secant steps first (forward solves only), then, if they stall above ``tol``,
+    Gauss-Newton with fresh Jacobians from z itself (started where the secant steps
+    stalled instead, it took a longer path on the Chebyshev-12 steering). Returns
+    (z, y, D, ok), D the Jacobian of (J, psi) at the returned z."""
+    z_s, y_s, ok = _restore_broyden(sh, z, y, A, Q, Qi, tol)
+    if ok:
+        z, y = z_s, y_s
+    y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
+    if np.abs(y[1:]).max() <= tol:
+        return z, y, D, True
+    return _project(sh, z, y, D, Qi, tol, max_iter=gn_iter)
 
 
 def _project(sh, z, y, D, Qi, tol, max_iter=10):
@@ -319,15 +334,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             stat, lam = _stationarity(g, A)
             if loose and (stat < LOOSE_UNTIL or stalled):
                 loose, sh = False, sh_final
-                # the constraints move by about the loose tolerance: restore with the
-                # loose Jacobian (forward solves only), then fall back to Gauss-Newton
-                z, y, ok, _ = _restore_broyden(sh, z, _values(sh, z), D[1:], Q, Qi, ctol)
-                y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
-                if not np.abs(y[1:]).max() <= ctol:
-                    z, y, D, ok = _project(sh, z, y, D, Qi, ctol)
-                    if not ok:
-                        msg = "restoration at the requested tolerances failed"
-                        break
+                # the constraints move by about the loose tolerance: restore starting
+                # from the loose Jacobian
+                z, y, D, ok = _restore(sh, z, _values(sh, z), D[1:], Q, Qi, ctol, gn_iter=10)
+                if not ok:
+                    msg = "restoration at the requested tolerances failed"
+                    break
                 g, A = D[0], D[1:]
                 stat, lam = _stationarity(g, A)
             record(stat, alpha)
@@ -346,15 +358,8 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                 z_t = z + alpha * d
                 y_t = _values(sh, z_t)
                 if np.all(np.isfinite(y_t)):
-                    # second-order correction with A(z) (the step lies in its null space),
-                    # then fresh Jacobians only if that does not converge
-                    z_c, y_c, ok, n_solves = _restore_broyden(sh, z_t, y_t, A, Q, Qi, ctol)
-                    if ok:
-                        z_t, (y_t, D_t) = z_c, (np.asarray(a) for a in _values_and_jacobian(sh, z_c))
-                        ok = bool(np.abs(y_t[1:]).max() <= ctol)
-                    if not ok:
-                        _, D_t = (np.asarray(a) for a in _values_and_jacobian(sh, z_t))
-                        z_t, y_t, D_t, ok = _project(sh, z_t, y_t, D_t, Qi, ctol, max_iter=6)
+                    # second-order correction with A(z) (the step lies in its null space)
+                    z_t, y_t, D_t, ok = _restore(sh, z_t, y_t, A, Q, Qi, ctol, gn_iter=6)
                     if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
                         accepted = True
                         break

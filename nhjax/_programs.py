@@ -293,10 +293,13 @@ def _store(path: Path, data: bytes):
 
 
 def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None, compiler_options=None,
-             flat=None):
+             flat=None, background=False):
     """(compiled caller, output treedef) of ``fn`` on ``args``'s structure, from memory,
     disk (its executable, or its program compiled) or a new export; None when it cannot
-    be cached. ``flat``: ``jtu.tree_flatten(args)`` if the caller has it."""
+    be cached. ``flat``: ``jtu.tree_flatten(args)`` if the caller has it.
+    ``background``: a compile that is needed runs in a worker thread; returns its
+    future (kept in memory, where the call that needs the program waits for it), or
+    what is there already (a pending future is not waited for)."""
     folder = directory()
     if folder is None or jax.config.jax_disable_jit:
         return None
@@ -308,7 +311,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         quick = quick + (tuple(sorted(options.items())),)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
-    program = _settled(program, quick)
+    program = program if background else _settled(program)
     if program is not None:
         return None if program is _FAILED else program
     try:
@@ -323,7 +326,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         return None
     with _LOCK:
         program = _MEMORY.get(key)
-    program = _settled(program, key)
+    program = program if background else _settled(program)
     if program is None:
         exe_path = folder / f"{key}-{_machine()}.exe"
         program = _load_executable(exe_path)
@@ -336,7 +339,10 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
                 program = _export(fn, static, dyn_def, leaves, path)
             if program is not _FAILED:
                 specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
-                program = _compile(program, specs, options, exe_path)
+                if background:
+                    program = _compiler().submit(_compile, program, specs, options, exe_path)
+                else:
+                    program = _compile(program, specs, options, exe_path)
     with _LOCK:
         _MEMORY[key] = program
         if quick is not None:
@@ -344,7 +350,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     return None if program is _FAILED else program
 
 
-def _settled(program, key):
+def _settled(program):
     """``program`` from ``_MEMORY``, waiting for it if ``prepare`` is compiling it in the
     background; None (and forgotten) if that compile failed: the caller compiles it
     again and meets the error itself."""
@@ -377,43 +383,15 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None)
     in a background thread, which releases the GIL: a solver that will need several
     programs compiles the later ones while it compiles and runs the first (2 cores:
     about the XLA time of the smaller one saved). The call that needs it waits for that
-    compile. Nothing happens if the program is in memory or its executable on disk
-    (loading is quick), or if it cannot be cached. Returns whether a compile started."""
-    folder = directory()
-    if folder is None or jax.config.jax_disable_jit:
-        return False
+    compile. A program on disk is only loaded; one in memory is left alone. Returns
+    whether this call started a compile."""
     flat = jtu.tree_flatten(args)
     quick = _quick_key(name, fn, args, error_mode, flat)
-    if quick is _TRACED:
-        return False
     with _LOCK:
-        if quick is not None and quick in _MEMORY:
+        if quick is _TRACED or (quick is not None and quick in _MEMORY):
             return False
-    try:
-        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
-    except Uncacheable:
-        return False
-    exe_path = folder / f"{key}-{_machine()}.exe"
-    with _LOCK:
-        if key in _MEMORY:
-            return False
-    if exe_path.exists():
-        return False
-    dyn, static = eqx.partition(args, eqx.is_array)
-    leaves, dyn_def = jtu.tree_flatten(dyn)
-    path = folder / f"{key}.prog"
-    program = _load(path)
-    if program is None:
-        program = _export(fn, static, dyn_def, leaves, path)
-    if program is _FAILED:
-        return False
-    specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
-    future = _compiler().submit(_compile, program, specs, {}, exe_path)
-    with _LOCK:
-        _MEMORY[key] = future
-        if quick is not None:
-            _MEMORY[quick] = future
-    return True
+    program = _program(name, fn, args, error_mode, flat=flat, background=True)
+    return isinstance(program, concurrent.futures.Future)
 
 
 def _quick_key(name, fn, args, error_mode=None, flat=None):
