@@ -308,10 +308,15 @@ def _indirect(sh, z0, tol, max_steps, damped: bool):
     return z, jnp.max(jnp.abs(r)), steps, traj, us, cost, viol
 
 
-def _check_vector_ocp(ocp, owner):
+def _check_pontryagin(ocp, owner, solver, u_star):
+    """The checks solve_pontryagin and prepare_pontryagin share: a problem with a
+    vector state, and the solver and u* options."""
     check_ocp(ocp, owner)
     if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
         raise ProblemError(f"{owner}: the Pontryagin solver needs a vector state; use the direct methods")
+    with as_problem_error():
+        nhjax._validate.choice("solver", solver, ("newton", "lm"), owner=owner)
+        nhjax._validate.choice("u_star", u_star, ("quadratic", "newton"), owner=owner)
 
 
 def _root_options(tol, max_steps, solver):
@@ -328,10 +333,7 @@ def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadr
     the compile then overlaps the caller's other work. Returns whether a compile
     started (not if the program is compiled already or kept on disk)."""
     owner = "prepare_pontryagin"
-    _check_vector_ocp(ocp, owner)
-    with as_problem_error():
-        nhjax._validate.choice("solver", solver, ("newton", "lm"), owner=owner)
-        nhjax._validate.choice("u_star", u_star, ("quadratic", "newton"), owner=owner)
+    _check_pontryagin(ocp, owner, solver, u_star)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"))
     ham = HamiltonianSystem(ocp, u_star)
     sh = _Shooting(ham, jnp.asarray(rtol, float), jnp.asarray(atol, float), 1)
@@ -367,14 +369,9 @@ def solve_pontryagin(
     arguments. Returns an ``IndirectResult``.
     """
     owner = "solve_pontryagin"
-    check_ocp(ocp, owner)
-    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
-        raise ProblemError("the Pontryagin solver needs a vector state; use the direct methods")
+    _check_pontryagin(ocp, owner, solver, u_star)
     if shooting not in ("single", "multiple"):
         raise ProblemError("shooting must be 'single' or 'multiple'")
-    with as_problem_error():
-        nhjax._validate.choice("solver", solver, ("newton", "lm"), owner=owner)
-        nhjax._validate.choice("u_star", u_star, ("quadratic", "newton"), owner=owner)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"),
                      segments=(segments, "int", 2 if shooting == "multiple" else 1))
     t_start = time.perf_counter()
@@ -523,6 +520,16 @@ def _costate_sweep(ham, control, xT, nu, rtol, atol, n_points, adjoint):
     return ts, xs, ps, us, Hu, Lu, H, L
 
 
+def _check_sweep(ocp, control, owner, rtol, atol, n_points):
+    """The checks pmp_residual and prepare_pmp_residual share."""
+    check_ocp(ocp, owner)
+    if not callable(control):
+        raise ProblemError(f"{owner}: control must be callable as u(t, x), got {type(control).__name__}")
+    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
+        raise ProblemError(f"{owner}: the costate check needs a vector state")
+    check_tolerances(owner, rtol=rtol, atol=atol, n_points=(n_points, "int", 2))
+
+
 def _sweep_pieces(ocp, rtol, atol):
     """_costate_sweep's Hamiltonian system, tolerances (arrays) and adjoint."""
     return (HamiltonianSystem(ocp), jnp.asarray(rtol, float), jnp.asarray(atol, float),
@@ -533,11 +540,7 @@ def prepare_pmp_residual(ocp: OCP, control, *, rtol=1e-11, atol=1e-11, n_points=
     """Trace ``pmp_residual``'s costate sweep for this problem and a control of
     ``control``'s structure (e.g. the parametrization's signal of any parameters) now
     and compile it in the background; see ``prepare_pontryagin``."""
-    owner = "prepare_pmp_residual"
-    _check_vector_ocp(ocp, owner)
-    if not callable(control):
-        raise ProblemError(f"{owner}: control must be callable as u(t, x), got {type(control).__name__}")
-    check_tolerances(owner, rtol=rtol, atol=atol, n_points=(n_points, "int", 2))
+    _check_sweep(ocp, control, "prepare_pmp_residual", rtol, atol, n_points)
     n, m = ocp.x0.shape[0], ocp.n_constraints
     ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
     return _costate_sweep.prepare(ham, control, np.zeros(n), np.zeros(m), rt, at, n_points, adj)
@@ -557,13 +560,7 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     """
     from .problem import rollout
 
-    owner = "pmp_residual"
-    check_ocp(ocp, owner)
-    if not callable(control):
-        raise ProblemError(f"{owner}: control must be callable as u(t, x), got {type(control).__name__}")
-    if not hasattr(ocp.x0, "shape") or ocp.x0.ndim != 1:
-        raise ProblemError(f"{owner}: the costate check needs a vector state")
-    check_tolerances(owner, rtol=rtol, atol=atol, n_points=(n_points, "int", 2))
+    _check_sweep(ocp, control, "pmp_residual", rtol, atol, n_points)
     m = ocp.n_constraints
     if multipliers is not None:
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
