@@ -61,6 +61,10 @@ __all__ = ["solve_direct_newton"]
 #: (``loose_tol``) for the requested tolerances.
 LOOSE_UNTIL = 1e-3
 
+#: A line search's trial point is restored by Gauss-Newton only while each step
+#: shrinks the violation by at least this factor; otherwise the step is halved.
+CONTRACTION = 0.5
+
 class _Shooting(eqx.Module):
     """Single shooting: parameters -> (cost, terminal constraints), as one pytree."""
 
@@ -179,25 +183,31 @@ def _restore_broyden(sh, z, y, A, Q, Qi, tol, max_iter=20):
     return z, y, bool(v <= tol)
 
 
-def _restore(sh, z, y, A, Q, Qi, tol, gn_iter):
+def _restore(sh, z, y, A, Q, Qi, tol, gn_iter, contraction=None):
     """Restoration from z (values y) with A the constraints' Jacobian at a nearby point:
     secant steps first (forward solves only), then, if they stall above ``tol``,
     Gauss-Newton with fresh Jacobians from z itself (started where the secant steps
-    stalled instead, it took a longer path on the Chebyshev-12 steering). Returns
-    (z, y, D, ok), D the Jacobian of (J, psi) at the returned z."""
+    stalled instead, it took a longer path on the Chebyshev-12 steering); see
+    ``_project`` for ``contraction``. Returns (z, y, D, ok), D the Jacobian of
+    (J, psi) at the returned z."""
     z_s, y_s, ok = _restore_broyden(sh, z, y, A, Q, Qi, tol)
     if ok:
         z, y = z_s, y_s
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if np.abs(y[1:]).max() <= tol:
         return z, y, D, True
-    return _project(sh, z, y, D, Qi, tol, max_iter=gn_iter)
+    return _project(sh, z, y, D, Qi, tol, max_iter=gn_iter, contraction=contraction)
 
 
-def _project(sh, z, y, D, Qi, tol, max_iter=10):
+def _project(sh, z, y, D, Qi, tol, max_iter=10, contraction=None):
     """Gauss–Newton projection onto psi = 0 with least Q-norm steps,
     d = -Q^-1 A^T (A Q^-1 A^T + mu I)^-1 psi (mu -> 0: quadratic convergence;
     Levenberg–Marquardt damping when a step does not reduce |psi|_1).
+    With ``contraction`` (a factor < 1) there is no damping: the projection gives up as
+    soon as a step fails to shrink max |psi| by that factor. A trial point of a line
+    search from which Gauss-Newton does not contract is too far from psi = 0 to be
+    worth restoring: the shorter step is cheaper than a damped struggle (on the
+    steering problems such struggles ran up to 6 iterations and then failed).
     Returns (z, y, D, ok)."""
     m = y.shape[0] - 1
     mu = 0.0
@@ -206,14 +216,20 @@ def _project(sh, z, y, D, Qi, tol, max_iter=10):
         if np.abs(c).max() <= tol:
             return z, y, D, True
         G = A @ Qi @ A.T
-        for _ in range(12):
-            d = -Qi @ A.T @ np.linalg.solve(G + mu * np.eye(m), c)
+        if contraction is not None:
+            d = -Qi @ A.T @ np.linalg.solve(G, c)
             y_try = _values(sh, z + d)
-            if np.all(np.isfinite(y_try)) and np.abs(y_try[1:]).sum() < np.abs(c).sum():
-                break
-            mu = max(10.0 * mu, 1e-8 * np.abs(G).max())
+            if not (np.all(np.isfinite(y_try)) and np.abs(y_try[1:]).max() <= contraction * np.abs(c).max()):
+                return z, y, D, False
         else:
-            return z, y, D, False
+            for _ in range(12):
+                d = -Qi @ A.T @ np.linalg.solve(G + mu * np.eye(m), c)
+                y_try = _values(sh, z + d)
+                if np.all(np.isfinite(y_try)) and np.abs(y_try[1:]).sum() < np.abs(c).sum():
+                    break
+                mu = max(10.0 * mu, 1e-8 * np.abs(G).max())
+            else:
+                return z, y, D, False
         z = z + d
         y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
         mu *= 0.01
@@ -282,12 +298,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     if m >= P:
         raise ProblemError(f"{P} control parameters cannot meet {m} terminal constraints and still "
                            "optimize: use a finer parametrization")
-    sh_final = _Shooting(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float))
+    sh_final = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
     # far from the optimum the iterates need not be exact: the first iterations run the
     # simulations at loose_tol (the same compiled programs: tolerances are arguments)
     loose = loose_tol is not None and (rtol < loose_tol or atol < loose_tol)
-    sh = _Shooting(ocp, param, jnp.asarray(max(rtol, loose_tol), float),
-                   jnp.asarray(max(atol, loose_tol), float)) if loose else sh_final
+    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(max(rtol, loose_tol)), float),
+                   jnp.asarray(np.asarray(max(atol, loose_tol)), float)) if loose else sh_final
     # the solver's three programs are traced here, one after the other, and compiled by
     # XLA in the background, side by side (in a new process most of a first solve)
     _values_and_jacobian.prepare(sh, z)
@@ -359,7 +375,8 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                 y_t = _values(sh, z_t)
                 if np.all(np.isfinite(y_t)):
                     # second-order correction with A(z) (the step lies in its null space)
-                    z_t, y_t, D_t, ok = _restore(sh, z_t, y_t, A, Q, Qi, ctol, gn_iter=6)
+                    z_t, y_t, D_t, ok = _restore(sh, z_t, y_t, A, Q, Qi, ctol, gn_iter=6,
+                                                        contraction=CONTRACTION)
                     if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
                         accepted = True
                         break
@@ -375,7 +392,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             z, y, D = z_t, y_t, D_t
     finally:
         bar.finish(converged)
-    z = jnp.asarray(z)
+    z = jnp.asarray(z, float)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,
