@@ -9,7 +9,7 @@ optimality conditions that applies to any solution."""
 from .direct import DirectResult, solve_direct
 from .newton import solve_direct_newton
 from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
-from .sqp import solve_direct_sqp
+from .sqp import prepare_direct_sqp, solve_direct_sqp
 from .pontryagin import (
     HamiltonianSystem,
     IndirectResult,
@@ -34,6 +34,7 @@ __all__ = [
     "ProblemError",
     "continuation",
     "pmp_residual",
+    "prepare_direct_sqp",
     "prepare_pmp_residual",
     "prepare_pontryagin",
     "rollout",

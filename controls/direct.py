@@ -308,7 +308,7 @@ def solve_direct(
     p0 = np.zeros(param.size) if guess is None else np.asarray(
         check_guess("guess", guess, (param.size,), "parametrization"), float)
     S = segments if shooting == "multiple" else 1
-    tr = _Transcription(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float), S)
+    tr = _Transcription(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float), S)
     z = p0
     if S > 1:
         traj, _, _ = rollout(ocp, param.signal(p0), rtol=rtol, atol=atol, saveat=S + 1)

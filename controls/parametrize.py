@@ -36,8 +36,26 @@ from .problem import compiled
 __all__ = ["Chebyshev", "CubicSpline", "Fourier", "Parametrization", "PiecewiseConstant", "PiecewiseLinear"]
 
 
+def _concrete(x):
+    """Whether ``x`` has a value now (not a tracer of an outer transformation)."""
+    return not isinstance(x, jax.core.Tracer)
+
+
+def _device(a):
+    """A host (numpy) array as a jax array, without an eager program: in a new process
+    every eager jax operation is one more program to lower (5-25 ms each)."""
+    return jax.device_put(a) if isinstance(a, np.ndarray) else a
+
+
 def _horizon(T):
-    return jnp.asarray(T, float)
+    return _device(np.asarray(T, float)) if _concrete(T) else jnp.asarray(T, float)
+
+
+def _knots(param):
+    """The n + 1 equally spaced knots of ``param`` over [t0, t0 + T]."""
+    if _concrete(param.T):
+        return _device(np.linspace(param.t0, param.t0 + float(param.T), param.n + 1))
+    return jnp.linspace(param.t0, param.t0 + param.T, param.n + 1)
 
 
 class Parametrization(eqx.Module):
@@ -69,7 +87,9 @@ class Parametrization(eqx.Module):
         return fit_samples(self, ts, jax.vmap(u_fn)(jnp.asarray(ts)))
 
     def _check(self, params):
-        params = jnp.asarray(params)
+        """``params`` of the right shape: a float64 numpy array when it has a value (the
+        signals reshape it on the host and hand it over by ``_device``), else the tracer."""
+        params = np.asarray(params, float) if _concrete(params) else jnp.asarray(params)
         if params.shape != (self.size,):
             raise ValueError(
                 f"{type(self).__name__}(n={self.n}, dim={self.dim}) takes {self.size} "
@@ -95,7 +115,7 @@ def fit_samples(param, ts, us):
     at the times ts (N,): the basis from one compiled program per parametrization
     structure, the small least-squares solve on the host (numpy's LAPACK)."""
     basis, offset = (np.asarray(a) for a in _fit_basis(param, np.asarray(ts, float)))
-    return jnp.asarray(np.linalg.lstsq(basis, np.reshape(np.asarray(us, float), -1) - offset, rcond=None)[0])
+    return jnp.asarray(np.linalg.lstsq(basis, np.reshape(np.asarray(us, float), -1) - offset, rcond=None)[0], float)
 
 
 class PiecewiseConstant(Parametrization):
@@ -105,8 +125,7 @@ class PiecewiseConstant(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
-        return _PC(ts, params.reshape(self.n, self.dim))
+        return _PC(_knots(self), _device(params.reshape(self.n, self.dim)))
 
     def param_bounds(self, u_lower, u_upper):
         return jnp.tile(jnp.asarray(u_lower, float), self.n), jnp.tile(jnp.asarray(u_upper, float), self.n)
@@ -119,8 +138,7 @@ class PiecewiseLinear(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
-        return _PL(ts, params.reshape(self.n + 1, self.dim))
+        return _PL(_knots(self), _device(params.reshape(self.n + 1, self.dim)))
 
     def param_bounds(self, u_lower, u_upper):
         k = self.n + 1
@@ -149,8 +167,8 @@ class CubicSpline(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        ts = jnp.linspace(self.t0, self.t0 + self.T, self.n + 1)
-        y = params.reshape(self.n + 1, self.dim)
+        ts = _knots(self)
+        y = jnp.asarray(params.reshape(self.n + 1, self.dim))
         h = self.T / self.n
         n = self.n
         # natural spline: M_0 = M_n = 0, tridiagonal system for the interior second derivatives
@@ -181,7 +199,8 @@ class Fourier(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        return _FourierSignal(params.reshape(2 * self.n + 1, self.dim), 2 * np.pi / self.T, self.t0)
+        omega = _device(2 * np.pi / np.asarray(self.T)) if _concrete(self.T) else 2 * np.pi / self.T
+        return _FourierSignal(_device(params.reshape(2 * self.n + 1, self.dim)), omega, self.t0)
 
 
 class _ChebyshevSignal(eqx.Module):
@@ -205,4 +224,4 @@ class Chebyshev(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        return _ChebyshevSignal(params.reshape(self.n + 1, self.dim), self.t0, self.T)
+        return _ChebyshevSignal(_device(params.reshape(self.n + 1, self.dim)), self.t0, self.T)

@@ -330,13 +330,14 @@ def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadr
     """Trace ``solve_pontryagin``'s program (single shooting, these options) for this
     problem's structure now and compile it in the background, for a caller that will
     call it later (e.g. after a direct solve that gives the costates to start from):
-    the compile then overlaps the caller's other work. Returns whether a compile
-    started (not if the program is compiled already or kept on disk)."""
+    the compile then overlaps the caller's other work. A program kept in nhjax's
+    program cache is loaded in the background instead. Returns whether background work
+    started (not if the program is in memory already)."""
     owner = "prepare_pontryagin"
     _check_pontryagin(ocp, owner, solver, u_star)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"))
     ham = HamiltonianSystem(ocp, u_star)
-    sh = _Shooting(ham, jnp.asarray(rtol, float), jnp.asarray(atol, float), 1)
+    sh = _Shooting(ham, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float), 1)
     n, m = ocp.x0.shape[0], ocp.n_constraints
     return _indirect.prepare(sh, np.zeros(n + m), *_root_options(tol, max_steps, solver))
 
@@ -384,7 +385,7 @@ def solve_pontryagin(
         check_guess("p0_guess", p0_guess, (n,), "costate guess"), float)
     nu = np.zeros(m) if nu_guess is None else np.asarray(
         check_guess("nu_guess", nu_guess, (m,), "multiplier guess"), float)
-    rt, at = jnp.asarray(rtol, float), jnp.asarray(atol, float)
+    rt, at = jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float)
     S = segments if shooting == "multiple" else 1
     sh = _Shooting(ham, rt, at, S)
     z0 = np.concatenate([p0, nu])
@@ -532,7 +533,7 @@ def _check_sweep(ocp, control, owner, rtol, atol, n_points):
 
 def _sweep_pieces(ocp, rtol, atol):
     """_costate_sweep's Hamiltonian system, tolerances (arrays) and adjoint."""
-    return (HamiltonianSystem(ocp), jnp.asarray(rtol, float), jnp.asarray(atol, float),
+    return (HamiltonianSystem(ocp), jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float),
             diffrax.RecursiveCheckpointAdjoint())
 
 

@@ -291,7 +291,7 @@ class OCP(eqx.Module):
             if not (np.isfinite(T) and T > 0):
                 raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
                                    "duration of the motion in seconds")
-            T = jnp.asarray(T, float)
+            T = jnp.asarray(np.asarray(T), float)  # from numpy: no eager program
         with as_problem_error():
             V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
             V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",
@@ -364,7 +364,7 @@ class OCP(eqx.Module):
                     f"{float(g):.3g} <= 0). " + self.system.guard_hints.get(name, ""))
 
     def _check_shapes(self):
-        u = jnp.zeros(self.system.control_dim)
+        u = jax.ShapeDtypeStruct((self.system.control_dim,), jnp.float64)  # abstract: no eager program
         names = self.system.state_names
         if names and getattr(self.x0, "shape", None) != (len(names),):
             raise ProblemError(
@@ -372,13 +372,13 @@ class OCP(eqx.Module):
                 f"{getattr(self.x0, 'shape', None)}, the state is {names}"
             )
         try:
-            dx = jax.eval_shape(lambda: self.system.vector_field(0.0, self.x0, u))
+            dx = jax.eval_shape(lambda u: self.system.vector_field(0.0, self.x0, u), u)
         except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
             raise ProblemError(f"x0 does not fit {type(self.system).__name__}: {e}") from e
         if jtu.tree_structure(dx) != jtu.tree_structure(self.x0):
             raise ProblemError(f"x0 does not fit {type(self.system).__name__}: its vector field "
                                "returns a differently structured state")
-        L = jax.eval_shape(lambda: self.running_cost(0.0, self.x0, u))
+        L = jax.eval_shape(lambda u: self.running_cost(0.0, self.x0, u), u)
         if L.shape != ():
             raise ProblemError(f"running_cost(t, x, u) must return a scalar, got shape {L.shape}")
         if self.terminal_cost is not None:
@@ -480,10 +480,21 @@ def rollout(ocp: OCP, control, *, rtol=1e-9, atol=1e-9, saveat=2, max_steps=None
     if adjoint is None:
         adjoint = nhjax.DiscreteAdjoint()
     aug = CostAugmented(ocp.system, ocp.running_cost)
-    y0 = (ocp.x0, jnp.zeros(()))
+    y0 = (ocp.x0, jnp.asarray(np.zeros(()), float))  # from numpy: no eager program
     traj = nhjax.simulate(aug, y0, ocp.T, control=_OnState(control), rtol=rtol, atol=atol,
                           saveat=saveat, max_steps=max_steps, adjoint=adjoint, track_work=False,
                           diagnostics=diagnostics, **kw)
-    xT, JT = jtu.tree_map(lambda a: a[-1], traj.xs)
+    end = _terminal_values if V.is_traced(ocp, traj.xs) else _terminal_values_program
+    return (traj, *end(ocp, traj.xs))
+
+
+def _terminal_values(ocp, xs):
+    """(Phi(x(T)) + J(T), psi(x(T))) from the saved states (x, J)."""
+    xT, JT = jtu.tree_map(lambda a: a[-1], xs)
     phi, psi = ocp.terminal(xT)
-    return traj, phi + JT, psi
+    return phi + JT, psi
+
+
+# on concrete values one program, where eager slicing and arithmetic would be one
+# program each to lower in a new process
+_terminal_values_program = compiled(_terminal_values)

@@ -48,7 +48,7 @@ from .problem import (
     check_tolerances,
 )
 
-__all__ = ["solve_direct_sqp"]
+__all__ = ["prepare_direct_sqp", "solve_direct_sqp"]
 
 
 def _kkt_solve(H, A, r1, r2):
@@ -130,6 +130,33 @@ def _interior_point(B, g, A, b, lo, hi, L, U, d, y, zl, zu, scale, tol, max_iter
     return d, y, zl, zu
 
 
+def _check_sqp(ocp, param, owner, rtol, atol):
+    check_ocp(ocp, owner)
+    check_parametrization(param, ocp, owner)
+    check_tolerances(owner, rtol=rtol, atol=atol)
+    if ocp.n_constraints >= param.size:
+        raise ProblemError(f"{param.size} control parameters cannot meet {ocp.n_constraints} terminal "
+                           "constraints and still optimize: use a finer parametrization")
+
+
+def _prepare(ocp, param, rtol, atol, z):
+    """Both of the SQP's programs: traced now, compiled (or loaded) in the background."""
+    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
+    started = _values_and_jacobian.prepare(sh, z)
+    return _control_cost_hessian.prepare(ocp, param, z) or started
+
+
+def prepare_direct_sqp(ocp: OCP, param, *, rtol=1e-10, atol=1e-10) -> bool:
+    """Trace the programs of ``solve_direct_sqp`` (``solve_direct``'s default for single
+    shooting) for this problem and parametrization now, and compile them in the
+    background (or load them from nhjax's program cache there), for a caller that
+    solves later and has other work first (tracing or preparing other programs: see
+    ``prepare_pontryagin``). Returns whether background work started (not if the
+    programs are in memory already)."""
+    _check_sqp(ocp, param, "prepare_direct_sqp", rtol, atol)
+    return _prepare(ocp, param, rtol, atol, np.zeros(param.size))
+
+
 def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, ctol=1e-8, gtol=1e-9,
                      ftol=1e-12, max_iter=100, progress=True) -> DirectResult:
     """Solve ``ocp`` over the parameters of ``param`` by SQP (see the module docstring):
@@ -154,20 +181,17 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
     """
     t_start = time.perf_counter()
     owner = "solve_direct_sqp"
-    check_ocp(ocp, owner)
-    check_parametrization(param, ocp, owner)
-    check_tolerances(owner, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, ftol=ftol, max_iter=(max_iter, "int"))
+    _check_sqp(ocp, param, owner, rtol, atol)
+    check_tolerances(owner, ctol=ctol, gtol=gtol, ftol=ftol, max_iter=(max_iter, "int"))
     m, P = ocp.n_constraints, param.size
-    if m >= P:
-        raise ProblemError(f"{P} control parameters cannot meet {m} terminal constraints and still "
-                           "optimize: use a finer parametrization")
     # host (numpy) iterates: an eager jax operation is a program of its own in a new process
     z = np.zeros(P) if guess is None else np.asarray(check_guess("guess", guess, (P,), "parametrization"), float)
     lo, hi = np.full(P, -np.inf), np.full(P, np.inf)
     if ocp.u_lower is not None:
         lo, hi = (np.asarray(a, float) for a in param.param_bounds(ocp.u_lower, ocp.u_upper))
         z = np.clip(z, lo, hi)
-    sh = _Shooting(ocp, param, jnp.asarray(rtol, float), jnp.asarray(atol, float))
+    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
+    _prepare(ocp, param, rtol, atol, z)  # the Hessian's program compiles beside the Jacobian's
 
     def evaluate(z):
         y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
@@ -258,7 +282,7 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
             z, y, D = z_t, y_t, D_t
     finally:
         bar.finish(converged)
-    zj = jnp.asarray(z)
+    zj = jnp.asarray(z, float)
     return DirectResult(
         params=zj, control=param.signal(zj), cost=float(y[0]), violation=float(np.abs(y[1:]).max(initial=0.0)),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,

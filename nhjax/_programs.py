@@ -67,8 +67,8 @@ LIBRARIES = ("nhjax", "controls", "jax", "jaxlib", "diffrax", "equinox", "optimi
 _PACKAGES = ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax", "optax", "numpy")
 
 #: Counters the tests read: programs loaded from disk (``loaded``; executables among
-#: them: ``executables``), traced and stored, uncacheable calls.
-STATS = {"loaded": 0, "stored": 0, "uncacheable": 0, "executables": 0}
+#: them: ``executables``), traced and stored, compiled by XLA, uncacheable calls.
+STATS = {"loaded": 0, "stored": 0, "compiled": 0, "uncacheable": 0, "executables": 0}
 _MEMORY: dict[str, Callable] = {}
 _LOCK = threading.Lock()
 
@@ -329,7 +329,12 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     program = program if background else _settled(program)
     if program is None:
         exe_path = folder / f"{key}-{_machine()}.exe"
-        program = _load_executable(exe_path)
+        if background and exe_path.exists():
+            # loading links the executable's machine code (~0.1 s per MB here), with the
+            # GIL released: in the background, beside the caller's work and other loads
+            program = _compiler().submit(_load_or_raise, exe_path)
+        else:
+            program = _load_executable(exe_path)
         if program is None:
             dyn, static = eqx.partition(args, eqx.is_array)
             leaves, dyn_def = jtu.tree_flatten(dyn)
@@ -348,6 +353,15 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         if quick is not None:
             _MEMORY[quick] = program
     return None if program is _FAILED else program
+
+
+def _load_or_raise(path: Path):
+    """``_load_executable`` for a background load: a failure raises, so that ``_settled``
+    forgets it and the caller takes the ordinary path (compile) itself."""
+    program = _load_executable(path)
+    if program is None:
+        raise RuntimeError(f"cannot load {path}")
+    return program
 
 
 def _settled(program):
@@ -383,8 +397,9 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None)
     in a background thread, which releases the GIL: a solver that will need several
     programs compiles the later ones while it compiles and runs the first (2 cores:
     about the XLA time of the smaller one saved). The call that needs it waits for that
-    compile. A program on disk is only loaded; one in memory is left alone. Returns
-    whether this call started a compile."""
+    compile. An executable on disk is loaded in the background too (loading links its
+    machine code, about a tenth of a second per MB here); a program in memory is left
+    alone. Returns whether this call started background work (a compile or a load)."""
     flat = jtu.tree_flatten(args)
     quick = _quick_key(name, fn, args, error_mode, flat)
     with _LOCK:
@@ -511,6 +526,7 @@ def _compile(program, specs, options: dict, exe_path: Path):
             if not options:
                 raise
             options.pop(next(reversed(options)))
+    STATS["compiled"] += 1
     if _HITS.count or not _portable(out_def):
         # JAX's persistent cache had it after all (another JAX keeps its switch
         # elsewhere): an executable loaded from there serializes into one that misses

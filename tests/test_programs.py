@@ -242,6 +242,24 @@ def test_prepare_traces_now_compiles_in_the_background_and_the_call_uses_it(tmp_
     assert _programs.STATS["stored"] == stored + 1  # the call did not trace it again
     np.testing.assert_array_equal(out["z"], eqx.filter_jit(fn)(x2, y)["z"])
 
+    # a new process (nothing in memory): the executable on disk is loaded in the
+    # background, the call uses it and nothing is traced or compiled again
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    loaded, compiled_before = _programs.STATS["loaded"], _programs.STATS["compiled"]
+    assert _programs.prepare("test-prepare", fn, (x, y))
+    again = _programs.call("test-prepare", fn, (x2, y))
+    assert _programs.STATS["loaded"] == loaded + 1
+    assert (_programs.STATS["stored"], _programs.STATS["compiled"]) == (stored + 1, compiled_before)
+    np.testing.assert_array_equal(again["z"], out["z"])
+    # a damaged executable: the background load fails and the call compiles it anew
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    for exe in tmp_path.glob("test-prepare-*.exe"):
+        exe.write_bytes(b"not an executable")
+    assert _programs.prepare("test-prepare", fn, (x, y))
+    again = _programs.call("test-prepare", fn, (x2, y))
+    assert _programs.STATS["compiled"] == compiled_before + 1
+    np.testing.assert_array_equal(again["z"], out["z"])
+
     # a background compile that fails: the call compiles the program itself
     monkeypatch.setattr(_programs, "_MEMORY", {})
     real_compile = _programs._compile

@@ -267,6 +267,8 @@ PROBES = {
         _ocp(), controls.PiecewiseLinear(4, 1.0, 1), jnp.full(5, jnp.nan)),
     "controls.solve_pontryagin": lambda: controls.solve_pontryagin(_ocp(), p0_guess=jnp.array([np.inf, 0.0])),
     "controls.pmp_residual": lambda: controls.pmp_residual(_ocp(), lambda t, x: jnp.zeros(1), n_points=1),
+    "controls.prepare_direct_sqp": lambda: controls.prepare_direct_sqp(_ocp(), controls.PiecewiseLinear(4, 1.0, 1),
+                                                                      rtol=0.0),
     "controls.prepare_pontryagin": lambda: controls.prepare_pontryagin(_ocp(), tol=-1.0),
     "controls.prepare_pmp_residual": lambda: controls.prepare_pmp_residual(_ocp(), "not a control"),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),

@@ -40,11 +40,12 @@ from nhjax.scenes import FallingCat, FallingCatKinematic
 from nhjax.scenes.falling_cat import FallingCatSmooth
 
 from ..direct import DirectResult, solve_direct
-from ..parametrize import Chebyshev
+from ..parametrize import Chebyshev, fit_samples
 from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V
 
 from ..problem import OCP, ProblemError, as_problem_error, compiled, rollout
+from ..sqp import prepare_direct_sqp
 
 
 def _task_inputs(owner, cat, kind, theta0, turn, windings=None, chart=True):
@@ -107,8 +108,8 @@ def velocity_somersault_chart(cat: FallingCatKinematic, theta0, turn, T, winding
     """Chart problem: x = (theta, chi, psi), x0 = (theta0, 0, 0); at T: theta = theta0,
     chi = 2 pi windings, psi = turn."""
     _task_inputs("velocity_somersault_chart", cat, FallingCatKinematic, theta0, turn, windings)
-    target = jnp.asarray(np.array([theta0, 2 * np.pi * windings, turn], float))
-    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0], float)), T,
+    target = jnp.asarray(np.array([theta0, 2 * np.pi * windings, turn]), float)
+    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0]), float), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
 
 
@@ -116,8 +117,8 @@ def velocity_somersault_smooth(cat: FallingCatSmooth, theta0, turn, T, j=0) -> O
     """Smooth problem: x = (w1, w2, phi), x0 = (theta0, 0, 0); at T: w = (theta0, 0) and
     phi = turn + 2 pi j."""
     _task_inputs("velocity_somersault_smooth", cat, FallingCatSmooth, theta0, turn, j, chart=False)
-    target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 0.0, turn + 2 * np.pi * j)])
-    return OCP(cat, jnp.stack([jnp.asarray(theta0, float), 0.0, 0.0]), T,
+    target = jnp.asarray(np.array([theta0, 0.0, turn + 2 * np.pi * j]), float)
+    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0]), float), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
 
 
@@ -151,6 +152,12 @@ def _fixed_theta_costates(cat, theta0, c):
     return jnp.stack([jnp.zeros(()), p_chi, p_psi])
 
 
+@compiled
+def _fiber_coefficient(cat, theta0):
+    """f(theta0), as one program (not an eager operation per term)."""
+    return cat.f(theta0)
+
+
 def loop_guess(param, theta0, T, winding):
     """Parameters of ``param`` (smooth inputs u = w') fitted to a starting loop.
 
@@ -158,11 +165,11 @@ def loop_guess(param, theta0, T, winding):
     advances 2 pi winding); winding = 0: a circle of radius theta0/3 through
     w(0) = (theta0, 0) that does not enclose the straight cat (chi returns).
     """
-    if winding:
-        c = 2 * np.pi * winding / T
-        return param.fit(lambda t: theta0 * c * jnp.stack([-jnp.sin(c * t), jnp.cos(c * t)]))
-    r, c = theta0 / 3, 2 * np.pi / T
-    return param.fit(lambda t: r * c * jnp.stack([-jnp.sin(c * t), jnp.cos(c * t)]))
+    # sampled in numpy: in a new process each eager jax operation is a program to lower
+    theta0, T = float(theta0), float(T)
+    r, c = (theta0, 2 * np.pi * winding / T) if winding else (theta0 / 3, 2 * np.pi / T)
+    ts = param.sample_times()
+    return fit_samples(param, ts, r * c * np.stack([-np.sin(c * ts), np.cos(c * ts)], axis=1))
 
 
 def smooth_to_chart(xs):
@@ -216,15 +223,18 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     """
     t_start = time.perf_counter()
     param = Chebyshev(10, T, 2) if param is None else param
-    f0 = float(cat.f(theta0))
+    f0 = float(_fiber_coefficient(cat, np.asarray(theta0, float)))
     starts, best, best_ocp = [], None, None
     for i, k in enumerate(start_windings):
         phi_end = 2 * np.pi * k * (1 - f0) if k else 0.0
         j = int(np.round((phi_end - turn) / (2 * np.pi)))
         ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
         if i == 0:
-            # the check's and the polish's programs (the same for every j) compile in
-            # the background while the direct method compiles and runs
+            # the direct method's programs first (the longest compile), then the check's
+            # and the polish's (the same for every j): compiled, or loaded from the
+            # program cache, in the background while the others are traced and run
+            if direct_kw.get("optimizer", "auto") in ("auto", "sqp") and direct_kw.get("shooting") in (None, "single"):
+                prepare_direct_sqp(ocp, param, rtol=rtol, atol=atol)
             prepare_pmp_residual(ocp, param.signal(np.zeros(param.size)))
             if polish:
                 prepare_pontryagin(ocp)
