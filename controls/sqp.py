@@ -237,10 +237,14 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
                 break
             if it == max_iter:
                 break
-            # l1 merit J + mu |psi|_1, mu large enough for d to be a descent direction (N&W (18.36))
+            # l1 merit J + mu |psi|_1, mu large enough for d to be a descent direction (N&W
+            # (18.36)) and above the multipliers' size. Set afresh each iteration, not kept
+            # as the largest so far: a penalty fixed by large multipliers far from the
+            # optimum (|y| ~ 20 on a free-winding start, ~0.1 later) held the steps to
+            # 1/64 for 40 iterations; two starts failed with it
             c1 = np.abs(c).sum()
             if c1 > 0:
-                mu = max(mu, (g @ d + 0.5 * dBd) / (0.5 * c1), 1.1 * np.abs(yq).max(initial=0.0))
+                mu = max((g @ d + 0.5 * dBd) / (0.5 * c1), 1.1 * np.abs(yq).max(initial=0.0))
             merit = y[0] + mu * c1
             slope = g @ d - mu * c1
 

@@ -117,6 +117,22 @@ def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum)
     assert r.min_theta > 0.1  # the optimum itself keeps away from the straight cat
 
 
+def test_free_winding_hard_starts_reach_the_mirror_optima(chart_cat):
+    """At theta0 = 0.4 the circle start (winding 0) and the double loop (winding 2) start
+    far from the optimum, with multipliers ~100x their final size: SQP's l1 penalty must
+    follow the multipliers down (a penalty kept at its early maximum stalled both starts:
+    line search failed, max_iter). Both reach the winding -1 / +1 mirror optima, equal
+    in cost, and Pontryagin shooting from the recovered costates agrees."""
+    cat, _, T = chart_cat
+    smooth = FallingCatSmooth(cat.I1, cat.lam, cat.B)
+    r = somersault_free_winding(smooth, 0.4, -np.pi, T, start_windings=(0, 2), progress=False)
+    circle, double = r.starts
+    assert circle["converged"] and double["converged"], r.starts
+    assert abs(circle["winding"] + 1) < 1e-6 and abs(double["winding"] - 1) < 1e-6
+    np.testing.assert_allclose(circle["cost"], double["cost"], rtol=1e-8)
+    assert r.indirect.converged and r.cost_agreement < 1e-8
+
+
 def test_torque_loop_guess_turns_by_its_holonomy():
     """The guess's torques (inverse dynamics of a fixed-theta twist from rest to rest)
     reproduce that motion: rest at the end, chi advanced by 2 pi, psi by -2 pi f."""
