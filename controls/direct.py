@@ -41,16 +41,17 @@ import optax
 import nhjax
 
 from .problem import (
-    OCP,
     CostAugmented,
-    Progress,
+    OCP,
     ProblemError,
+    Progress,
     _OnState,
-    compiled,
     check_guess,
     check_ocp,
     check_parametrization,
     check_tolerances,
+    compiled,
+    host_array,
     rollout,
 )
 
@@ -308,7 +309,7 @@ def solve_direct(
     p0 = np.zeros(param.size) if guess is None else np.asarray(
         check_guess("guess", guess, (param.size,), "parametrization"), float)
     S = segments if shooting == "multiple" else 1
-    tr = _Transcription(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float), S)
+    tr = _Transcription(ocp, param, host_array(rtol), host_array(atol), S)
     z = p0
     if S > 1:
         traj, _, _ = rollout(ocp, param.signal(p0), rtol=rtol, atol=atol, saveat=S + 1)

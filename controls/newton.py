@@ -45,13 +45,14 @@ import numpy as np
 from .direct import DirectResult
 from .problem import (
     OCP,
-    Progress,
     ProblemError,
+    Progress,
     check_guess,
     check_ocp,
     check_parametrization,
     check_tolerances,
     compiled,
+    host_array,
     rollout,
 )
 
@@ -298,12 +299,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     if m >= P:
         raise ProblemError(f"{P} control parameters cannot meet {m} terminal constraints and still "
                            "optimize: use a finer parametrization")
-    sh_final = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
+    sh_final = _Shooting(ocp, param, host_array(rtol), host_array(atol))
     # far from the optimum the iterates need not be exact: the first iterations run the
     # simulations at loose_tol (the same compiled programs: tolerances are arguments)
     loose = loose_tol is not None and (rtol < loose_tol or atol < loose_tol)
-    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(max(rtol, loose_tol)), float),
-                   jnp.asarray(np.asarray(max(atol, loose_tol)), float)) if loose else sh_final
+    sh = _Shooting(ocp, param, host_array(max(rtol, loose_tol)),
+                   host_array(max(atol, loose_tol))) if loose else sh_final
     # the solver's three programs are traced here, one after the other, and compiled by
     # XLA in the background, side by side (in a new process most of a first solve)
     _values_and_jacobian.prepare(sh, z)

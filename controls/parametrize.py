@@ -31,29 +31,25 @@ import numpy as np
 from nhjax.integrate.signals import PiecewiseConstant as _PC
 from nhjax.integrate.signals import PiecewiseLinear as _PL
 
-from .problem import compiled
+from nhjax._validate import is_traced
+
+from .problem import compiled, host_array
 
 __all__ = ["Chebyshev", "CubicSpline", "Fourier", "Parametrization", "PiecewiseConstant", "PiecewiseLinear"]
 
 
-def _concrete(x):
-    """Whether ``x`` has a value now (not a tracer of an outer transformation)."""
-    return not isinstance(x, jax.core.Tracer)
-
-
 def _device(a):
-    """A host (numpy) array as a jax array, without an eager program: in a new process
-    every eager jax operation is one more program to lower (5-25 ms each)."""
-    return jax.device_put(a) if isinstance(a, np.ndarray) else a
+    """``host_array`` for a host (numpy) array; a tracer as it is."""
+    return host_array(a) if isinstance(a, np.ndarray) else a
 
 
 def _horizon(T):
-    return _device(np.asarray(T, float)) if _concrete(T) else jnp.asarray(T, float)
+    return jnp.asarray(T, float) if is_traced(T) else host_array(T)
 
 
 def _knots(param):
     """The n + 1 equally spaced knots of ``param`` over [t0, t0 + T]."""
-    if _concrete(param.T):
+    if not is_traced(param.T):
         return _device(np.linspace(param.t0, param.t0 + float(param.T), param.n + 1))
     return jnp.linspace(param.t0, param.t0 + param.T, param.n + 1)
 
@@ -89,7 +85,7 @@ class Parametrization(eqx.Module):
     def _check(self, params):
         """``params`` of the right shape: a float64 numpy array when it has a value (the
         signals reshape it on the host and hand it over by ``_device``), else the tracer."""
-        params = np.asarray(params, float) if _concrete(params) else jnp.asarray(params)
+        params = jnp.asarray(params) if is_traced(params) else np.asarray(params, float)
         if params.shape != (self.size,):
             raise ValueError(
                 f"{type(self).__name__}(n={self.n}, dim={self.dim}) takes {self.size} "
@@ -115,7 +111,7 @@ def fit_samples(param, ts, us):
     at the times ts (N,): the basis from one compiled program per parametrization
     structure, the small least-squares solve on the host (numpy's LAPACK)."""
     basis, offset = (np.asarray(a) for a in _fit_basis(param, np.asarray(ts, float)))
-    return jnp.asarray(np.linalg.lstsq(basis, np.reshape(np.asarray(us, float), -1) - offset, rcond=None)[0], float)
+    return host_array(np.linalg.lstsq(basis, np.reshape(np.asarray(us, float), -1) - offset, rcond=None)[0])
 
 
 class PiecewiseConstant(Parametrization):
@@ -199,7 +195,7 @@ class Fourier(Parametrization):
 
     def signal(self, params):
         params = self._check(params)
-        omega = _device(2 * np.pi / np.asarray(self.T)) if _concrete(self.T) else 2 * np.pi / self.T
+        omega = 2 * np.pi / self.T if is_traced(self.T) else host_array(2 * np.pi / np.asarray(self.T))
         return _FourierSignal(_device(params.reshape(2 * self.n + 1, self.dim)), omega, self.t0)
 
 

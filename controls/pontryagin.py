@@ -45,13 +45,14 @@ from nhjax.mechanics import AbstractSystem
 
 from .problem import (
     OCP,
-    Progress,
     ProblemError,
+    Progress,
     as_problem_error,
     check_guess,
     check_ocp,
     check_tolerances,
     compiled,
+    host_array,
 )
 
 __all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "prepare_pmp_residual",
@@ -337,7 +338,7 @@ def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadr
     _check_pontryagin(ocp, owner, solver, u_star)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"))
     ham = HamiltonianSystem(ocp, u_star)
-    sh = _Shooting(ham, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float), 1)
+    sh = _Shooting(ham, host_array(rtol), host_array(atol), 1)
     n, m = ocp.x0.shape[0], ocp.n_constraints
     return _indirect.prepare(sh, np.zeros(n + m), *_root_options(tol, max_steps, solver))
 
@@ -385,7 +386,7 @@ def solve_pontryagin(
         check_guess("p0_guess", p0_guess, (n,), "costate guess"), float)
     nu = np.zeros(m) if nu_guess is None else np.asarray(
         check_guess("nu_guess", nu_guess, (m,), "multiplier guess"), float)
-    rt, at = jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float)
+    rt, at = host_array(rtol), host_array(atol)
     S = segments if shooting == "multiple" else 1
     sh = _Shooting(ham, rt, at, S)
     z0 = np.concatenate([p0, nu])
@@ -533,7 +534,7 @@ def _check_sweep(ocp, control, owner, rtol, atol, n_points):
 
 def _sweep_pieces(ocp, rtol, atol):
     """_costate_sweep's Hamiltonian system, tolerances (arrays) and adjoint."""
-    return (HamiltonianSystem(ocp), jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float),
+    return (HamiltonianSystem(ocp), host_array(rtol), host_array(atol),
             diffrax.RecursiveCheckpointAdjoint())
 
 

@@ -85,6 +85,13 @@ def _clear_error_traces():
         cached.clear_cache()
 
 
+def host_array(x):
+    """A concrete number or array as a float64 jax array, handed over from numpy:
+    ``jnp.asarray`` on a Python number (or on an array without a dtype) runs an eager
+    program, one more to lower in every new process (5-25 ms each)."""
+    return jnp.asarray(np.asarray(x), float)
+
+
 def compiled(fn):
     """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``.
 
@@ -291,7 +298,7 @@ class OCP(eqx.Module):
             if not (np.isfinite(T) and T > 0):
                 raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
                                    "duration of the motion in seconds")
-            T = jnp.asarray(np.asarray(T), float)  # from numpy: no eager program
+            T = host_array(T)
         with as_problem_error():
             V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
             V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",
@@ -480,7 +487,7 @@ def rollout(ocp: OCP, control, *, rtol=1e-9, atol=1e-9, saveat=2, max_steps=None
     if adjoint is None:
         adjoint = nhjax.DiscreteAdjoint()
     aug = CostAugmented(ocp.system, ocp.running_cost)
-    y0 = (ocp.x0, jnp.asarray(np.zeros(()), float))  # from numpy: no eager program
+    y0 = (ocp.x0, host_array(0.0))
     traj = nhjax.simulate(aug, y0, ocp.T, control=_OnState(control), rtol=rtol, atol=atol,
                           saveat=saveat, max_steps=max_steps, adjoint=adjoint, track_work=False,
                           diagnostics=diagnostics, **kw)

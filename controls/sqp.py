@@ -40,12 +40,13 @@ from .direct import DirectResult, _check_differentiable
 from .newton import _control_cost_hessian, _Shooting, _stationarity, _values_and_jacobian
 from .problem import (
     OCP,
-    Progress,
     ProblemError,
+    Progress,
     check_guess,
     check_ocp,
     check_parametrization,
     check_tolerances,
+    host_array,
 )
 
 __all__ = ["prepare_direct_sqp", "solve_direct_sqp"]
@@ -139,11 +140,10 @@ def _check_sqp(ocp, param, owner, rtol, atol):
                            "constraints and still optimize: use a finer parametrization")
 
 
-def _prepare(ocp, param, rtol, atol, z):
+def _prepare(sh, z):
     """Both of the SQP's programs: traced now, compiled (or loaded) in the background."""
-    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
     started = _values_and_jacobian.prepare(sh, z)
-    return _control_cost_hessian.prepare(ocp, param, z) or started
+    return _control_cost_hessian.prepare(sh.ocp, sh.param, z) or started
 
 
 def prepare_direct_sqp(ocp: OCP, param, *, rtol=1e-10, atol=1e-10) -> bool:
@@ -154,7 +154,7 @@ def prepare_direct_sqp(ocp: OCP, param, *, rtol=1e-10, atol=1e-10) -> bool:
     ``prepare_pontryagin``). Returns whether background work started (not if the
     programs are in memory already)."""
     _check_sqp(ocp, param, "prepare_direct_sqp", rtol, atol)
-    return _prepare(ocp, param, rtol, atol, np.zeros(param.size))
+    return _prepare(_Shooting(ocp, param, host_array(rtol), host_array(atol)), np.zeros(param.size))
 
 
 def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, ctol=1e-8, gtol=1e-9,
@@ -190,8 +190,8 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
     if ocp.u_lower is not None:
         lo, hi = (np.asarray(a, float) for a in param.param_bounds(ocp.u_lower, ocp.u_upper))
         z = np.clip(z, lo, hi)
-    sh = _Shooting(ocp, param, jnp.asarray(np.asarray(rtol), float), jnp.asarray(np.asarray(atol), float))
-    _prepare(ocp, param, rtol, atol, z)  # the Hessian's program compiles beside the Jacobian's
+    sh = _Shooting(ocp, param, host_array(rtol), host_array(atol))
+    _prepare(sh, z)  # the Hessian's program compiles beside the Jacobian's
 
     def evaluate(z):
         y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))

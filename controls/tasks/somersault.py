@@ -44,7 +44,7 @@ from ..parametrize import Chebyshev, fit_samples
 from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V
 
-from ..problem import OCP, ProblemError, as_problem_error, compiled, rollout
+from ..problem import OCP, ProblemError, as_problem_error, compiled, host_array, rollout
 from ..sqp import prepare_direct_sqp
 
 
@@ -108,8 +108,8 @@ def velocity_somersault_chart(cat: FallingCatKinematic, theta0, turn, T, winding
     """Chart problem: x = (theta, chi, psi), x0 = (theta0, 0, 0); at T: theta = theta0,
     chi = 2 pi windings, psi = turn."""
     _task_inputs("velocity_somersault_chart", cat, FallingCatKinematic, theta0, turn, windings)
-    target = jnp.asarray(np.array([theta0, 2 * np.pi * windings, turn]), float)
-    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0]), float), T,
+    target = host_array([theta0, 2 * np.pi * windings, turn])
+    return OCP(cat, host_array([theta0, 0.0, 0.0]), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
 
 
@@ -117,8 +117,8 @@ def velocity_somersault_smooth(cat: FallingCatSmooth, theta0, turn, T, j=0) -> O
     """Smooth problem: x = (w1, w2, phi), x0 = (theta0, 0, 0); at T: w = (theta0, 0) and
     phi = turn + 2 pi j."""
     _task_inputs("velocity_somersault_smooth", cat, FallingCatSmooth, theta0, turn, j, chart=False)
-    target = jnp.asarray(np.array([theta0, 0.0, turn + 2 * np.pi * j]), float)
-    return OCP(cat, jnp.asarray(np.array([theta0, 0.0, 0.0]), float), T,
+    target = host_array([theta0, 0.0, turn + 2 * np.pi * j])
+    return OCP(cat, host_array([theta0, 0.0, 0.0]), T,
                running_cost=Vibrational(cat), terminal_constraints=TerminalTarget(target))
 
 
