@@ -393,7 +393,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             z, y, D = z_t, y_t, D_t
     finally:
         bar.finish(converged)
-    z = jnp.asarray(z, float)
+    z = host_array(z)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,

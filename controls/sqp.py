@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import time
 
-import jax.numpy as jnp
 import numpy as np
 
 from .direct import DirectResult, _check_differentiable
@@ -286,7 +285,7 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
             z, y, D = z_t, y_t, D_t
     finally:
         bar.finish(converged)
-    zj = jnp.asarray(z, float)
+    zj = host_array(z)
     return DirectResult(
         params=zj, control=param.signal(zj), cost=float(y[0]), violation=float(np.abs(y[1:]).max(initial=0.0)),
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,
