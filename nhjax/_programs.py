@@ -304,11 +304,9 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     if folder is None or jax.config.jax_disable_jit:
         return None
     options = dict(compiler_options or {})
-    quick = _quick_key(name, fn, args, error_mode, flat)
+    quick = _quick_key(name, fn, args, error_mode, flat, options)
     if quick is _TRACED:
         return None
-    if quick is not None and options:
-        quick = quick + (tuple(sorted(options.items())),)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
     program = program if background else _settled(program)
@@ -345,6 +343,9 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
             if program is not _FAILED:
                 specs = [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in leaves]
                 if background:
+                    if quick is not None:
+                        with _LOCK:
+                            _OUT_DEFS[quick] = program[1]
                     program = _compiler().submit(_compile, program, specs, options, exe_path)
                 else:
                     program = _compile(program, specs, options, exe_path)
@@ -390,7 +391,8 @@ def _compiler():
     return _COMPILER
 
 
-def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None) -> bool:
+def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
+            compiler_options: dict | None = None) -> bool:
     """Get ``fn``'s program on ``args``'s structure ready before it is called: traced and
     lowered now, in the calling thread (tracing reads process-wide settings such as
     equinox's error mode, which only the caller knows to be right), and compiled by XLA
@@ -399,17 +401,37 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None)
     about the XLA time of the smaller one saved). The call that needs it waits for that
     compile. An executable on disk is loaded in the background too (loading links its
     machine code, about a tenth of a second per MB here); a program in memory is left
-    alone. Returns whether this call started background work (a compile or a load)."""
+    alone. ``compiler_options`` as for ``call`` (the call must pass the same). Returns
+    whether this call started background work (a compile or a load)."""
     flat = jtu.tree_flatten(args)
-    quick = _quick_key(name, fn, args, error_mode, flat)
+    quick = _quick_key(name, fn, args, error_mode, flat, compiler_options)
     with _LOCK:
         if quick is _TRACED or (quick is not None and quick in _MEMORY):
             return False
-    program = _program(name, fn, args, error_mode, flat=flat, background=True)
+    program = _program(name, fn, args, error_mode, compiler_options, flat=flat, background=True)
     return isinstance(program, concurrent.futures.Future)
 
 
-def _quick_key(name, fn, args, error_mode=None, flat=None):
+def output_structure(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
+                     compiler_options: dict | None = None):
+    """The output treedef of the program ``prepare`` or ``call`` made for these
+    arguments' structure (without waiting for a background compile; waiting for a
+    background load), or None if there is none."""
+    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
+    if quick is None or quick is _TRACED:
+        return None
+    with _LOCK:
+        known, program = _OUT_DEFS.get(quick), _MEMORY.get(quick)
+    if known is not None:
+        return known
+    program = _settled(program)
+    return None if program is None or program is _FAILED else program[1]
+
+
+_OUT_DEFS: dict = {}  # quick key -> output treedef of a program compiling in the background
+
+
+def _quick_key(name, fn, args, error_mode=None, flat=None, compiler_options=None):
     """The in-process key, as jax.jit's own cache has it: structure, shapes and dtypes,
     and the static values by hash (a global changed later in the same process is not
     seen, exactly as by jax.jit). None if a static value is unhashable; ``_TRACED`` if
@@ -419,6 +441,8 @@ def _quick_key(name, fn, args, error_mode=None, flat=None):
         return _TRACED
     desc = tuple((np.shape(x), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
     key = ("quick", name, fn, treedef, desc, error_mode or _error_mode())
+    if compiler_options:
+        key += (tuple(sorted(compiler_options.items())),)
     try:
         hash(key)
     except TypeError:
@@ -448,9 +472,12 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
     return run
 
 
-def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fallback: Callable | None = None):
+def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fallback: Callable | None = None,
+         compiler_options: dict | None = None):
     """``fn(*args)`` (a jax-traceable function returning a pytree of arrays in builtin
     containers), with its traced program taken from / kept in the program cache.
+    ``compiler_options``: XLA's, for the cached program (e.g. ``QUICK_OPTIONS``; the
+    fallback compiles with XLA's defaults).
 
     Equivalent to ``eqx.filter_jit(fn)(*args)``; falls back to that (or to
     ``fallback(*args)``, e.g. the caller's own jitted ``fn``) when caching is off or
@@ -458,7 +485,7 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fa
     ``fn`` sets for itself while traced (then the mode in force, which another thread
     may be changing, is not read)."""
     flat = jtu.tree_flatten(args)  # once, for the key and the inputs
-    program = _program(name, fn, args, error_mode, flat=flat)
+    program = _program(name, fn, args, error_mode, compiler_options, flat=flat)
     if program is None:
         return (fallback or eqx.filter_jit(fn))(*args)
     caller, out_def = program
@@ -466,6 +493,13 @@ def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fa
 
 
 _TRACED = object()  # the call is under an outer trace
+
+#: XLA settings for programs that run once per call on a few hundred numbers (the input
+#: checks, the diagnostics of a solve): compiling takes about half the time (LLVM at its
+#: lowest optimization, XLA's older loop emitters), the program runs ~2x slower, and its
+#: numbers may differ from a default compile in the last bits. The solves themselves
+#: keep XLA's defaults.
+QUICK_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 def _pickle_equinox_missing():
     """Pickle equinox's MISSING sentinel (in the tree structure of every equinox module)
     as a reference to the module's singleton: pickled by value it comes back as a new

@@ -273,3 +273,25 @@ def test_prepare_traces_now_compiles_in_the_background_and_the_call_uses_it(tmp_
     monkeypatch.setattr(_programs, "_compile", real_compile)
     again = _programs.call("test-prepare-fail", fn2, (y,))
     np.testing.assert_array_equal(again["z"], eqx.filter_jit(fn2)(y)["z"])
+
+
+def test_quick_options_are_a_program_of_their_own_and_prepare_passes_them_on(tmp_path, monkeypatch):
+    """A program compiled with QUICK_OPTIONS (how the input checks and diagnostics of an
+    eager simulate() are compiled) is kept beside, not instead of, its default compile:
+    prepare() with the options is what the call with them uses (one compile between
+    them), a call without them compiles the default one, and both agree with plain jit
+    to rounding (the options may change the arithmetic's order, so not bit for bit)."""
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    fn = _user_function("def q(x, y):\n    return {'z': jnp.sin(x) @ jnp.exp(y) / (1.0 + jnp.sum(x * x))}\n", "q")
+    x, y = jnp.linspace(-1.0, 2.0, 12).reshape(4, 3), jnp.array([0.5, -1.0, 2.0])
+    compiled = _programs.STATS["compiled"]
+    assert _programs.prepare("test-quick", fn, (x, y), compiler_options=_programs.QUICK_OPTIONS)
+    quick = _programs.call("test-quick", fn, (x, y), compiler_options=_programs.QUICK_OPTIONS)
+    assert _programs.STATS["compiled"] == compiled + 1
+    plain = _programs.call("test-quick", fn, (x, y))
+    assert _programs.STATS["compiled"] == compiled + 2
+    assert len(list(tmp_path.glob("test-quick-*.exe"))) == 2  # two executables, one trace
+    ref = eqx.filter_jit(fn)(x, y)["z"]
+    np.testing.assert_array_equal(plain["z"], ref)
+    np.testing.assert_allclose(quick["z"], ref, rtol=1e-14, atol=1e-15)

@@ -186,6 +186,15 @@ def _vector_field(static: _Static):
     return eqx.filter_jit(functools.partial(_vf_body, static))
 
 
+@eqx.filter_jit
+def _project_state(system, t, x):
+    """``system.project(t, x)`` as a nested jit, for the same reason as ``_vector_field``:
+    diffrax traces a solver's step several times (shape probes, the loop body), and the
+    saved states are projected too; a nested jit traces the projection once per system
+    structure and state shape, and XLA inlines it as before."""
+    return system.project(t, x)
+
+
 def _state_part(y, static: _Static):
     """The system's state in the solver's state ``y`` (which may carry the work)."""
     if static.flat_work:
@@ -229,15 +238,20 @@ def _diagnose(system, control, x0, t0, ts_saved, xs, t_final, work, track):
     return invariants, drift, {k: _max_abs(v) for k, v in cons.items()}, us
 
 
-def _warm_diagnostics(system, control, x0, t0, ts, track):
-    """Compile the eager path's diagnostics program (run on zeros of the right shapes),
-    so that a first simulate() compiles it while _solve compiles."""
+def _diagnose_placeholders(system, control, x0, t0, ts, track):
+    """Arguments of the eager path's diagnostics program with zeros for the solution."""
     n = ts.shape[0]
     xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
     work = jnp.zeros(n) if track else None
+    return system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track
+
+
+def _warm_diagnostics(system, control, x0, t0, ts, track):
+    """Compile the eager path's diagnostics program (run on zeros of the right shapes),
+    so that a first simulate() compiles it while _solve compiles."""
     jax.block_until_ready(_programs.call("diagnose", _diagnose_eager,
-                                         (system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track),
-                                         error_mode="off"))
+                                         _diagnose_placeholders(system, control, x0, t0, ts, track),
+                                         error_mode="off", compiler_options=_programs.QUICK_OPTIONS))
 
 
 _WARM_POOL = None
@@ -269,10 +283,10 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
 
         def project(t, y, args):
             if static.flat_work:
-                return jnp.concatenate([args[0].project(t, y[:-1]), y[-1:]])
+                return jnp.concatenate([_project_state(args[0], t, y[:-1]), y[-1:]])
             if track:
-                return args[0].project(t, y[0]), y[1]
-            return args[0].project(t, y)
+                return _project_state(args[0], t, y[0]), y[1]
+            return _project_state(args[0], t, y)
 
         solver = ProjectedSolver(solver, project)
         # the saved states (dense output between steps) are projected too, after the
@@ -322,10 +336,14 @@ def _finish(system, control, x0, t0, sol, static: _Static):
             reached = jnp.isfinite(t)
             # unreached rows are projected from x0 (finite: no NaN in a derivative) and dropped
             safe = jtu.tree_map(lambda a, b: jnp.where(reached, a, b), x, x0)
-            p = system.project(jnp.where(reached, t, t0), safe)
+            p = _project_state(system, jnp.where(reached, t, t0), safe)
             return jtu.tree_map(lambda a, b: jnp.where(reached, a, b), p, x)
 
-        xs = jax.vmap(onto)(ts_saved, xs)
+        # a loop over the rows, not vmap: the batched projection (batched Jacobians and
+        # LAPACK solves) is a second, larger program beside the step's own projection;
+        # one row at a time XLA compiles 0.8-1.5 s less of it for the scenes with
+        # constraints (BallInCone, ThreeCylinders), for ~0.5-1 ms more per solve
+        xs = jax.lax.map(lambda row: onto(*row), (ts_saved, xs))
 
     invariants, drift, constraint_drift, us = {}, {}, {}, None
     if static.diagnostics:
@@ -481,13 +499,38 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
     if _is_traced(args):
         x0p, report = _member_report(*args)
     else:  # through the program cache: a new process does not trace the checks again
-        x0p, report = _programs.call("report", member_report, args)
+        x0p, report = _programs.call("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
     guard_names, constrained = tuple(report["guards"]), _drifting_constraints(report["constraints"])
     if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
         x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
         return x0p, guard_names, constrained
     raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
     return x0p, guard_names, constrained
+
+
+def _start_checks(system, control, x0, t0, project):
+    """The first half of ``_check_inputs`` for an eager call: the host-side checks, and
+    ``member_report``'s program traced (its shape errors raise here) and compiled in the
+    background. Returns (the report's arguments, guard names, whether to project after
+    each step)."""
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    args = (system, control, x0, jnp.asarray(t0, float), project)
+    _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
+    out_def = _programs.output_structure("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
+    if out_def is None:
+        return args, *_check_structure(system, x0, args[3])
+    _, report = jtu.tree_unflatten(out_def, [None] * out_def.num_leaves)  # the report's names
+    return args, tuple(report["guards"]), _drifting_constraints(report["constraints"])
+
+
+def _finish_checks(report_args, system, x0, t0, constraint_tol, project):
+    """The second half: run the report and raise for what it found; returns x0
+    (projected if ``project``)."""
+    x0p, report = _programs.call("report", member_report, report_args,
+                                 compiler_options=_programs.QUICK_OPTIONS)
+    raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
+    return x0p
 
 
 def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
@@ -669,7 +712,13 @@ def simulate(
         raise StateError(f"simulate: x0 must be an array (or a pytree of arrays) of real numbers: {e}") from None
     simulate_memory(system, x0, saveat, stores_steps=traced and isinstance(adjoint, DiscreteAdjoint),
                     max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
-    x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
+    # An eager call with the program cache on starts every program it needs before it
+    # runs any (see _start_checks); otherwise the checks run first, as a program of their own.
+    early = not traced and _programs.directory() is not None
+    if early:
+        report_args, guard_names, constrained = _start_checks(system, control, x0, t0, project)
+    else:
+        x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
     if project_steps is None:
         project_steps = constrained
 
@@ -692,23 +741,37 @@ def simulate(
         static = dataclasses.replace(static, error_mode=_programs._error_mode())
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
-    elif not static.diagnostics:
-        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
-                             show)
     else:
-        # Eager call: the diagnostics are a second program, compiled in a thread while
-        # the solve compiles (XLA releases the GIL), then run on the solution.
+        # Eager call: the diagnostics are a second program, run on the solution.
         track = static.track_work
-        warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
         core = dataclasses.replace(static, diagnostics=False)
+        warm = None
+        if early:
+            # traced one after the other here (tracing holds the GIL), each compiled in
+            # the background as soon as it is traced (XLA releases it): the checks, the
+            # solve, the diagnostics; then the checks run, and raise before the solve runs
+            if not static.progress:
+                _programs.prepare("simulate", _solve_plain,
+                                  (system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0,
+                                   core, show), error_mode="off")
+            if static.diagnostics:
+                _programs.prepare("diagnose", _diagnose_eager, _diagnose_placeholders(system, control, x0, t0a, ts,
+                                                                                        track),
+                                  error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
+            x0 = _finish_checks(report_args, system, x0, t0, constraint_tol, project)
+        elif static.diagnostics:  # compiled in a thread while the solve compiles
+            warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
         traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
                              show)
-        warm.result()
-        invariants, drift, cons, us = _programs.call(
-            "diagnose", _diagnose_eager, (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track),
-            error_mode="off")
-        traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
-                                   constraint_drift=cons, us=us)
+        if static.diagnostics:
+            if warm is not None:
+                warm.result()
+            invariants, drift, cons, us = _programs.call(
+                "diagnose", _diagnose_eager,
+                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track), error_mode="off",
+                compiler_options=_programs.QUICK_OPTIONS)
+            traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
+                                       constraint_drift=cons, us=us)
     if traced:
         return _runtime_checks(traj, static, on_guard)
     return _eager_checks(traj, system, control, static, on_guard)
@@ -742,25 +805,44 @@ def _defines_power(system) -> bool:
     return type(system).power is not AbstractSystem.power
 
 
-_REPORTS: dict = {}
+_STRUCTURE: dict = {}
+
+
+def _structural(question, system, x0, t0, answer):
+    """``answer(*eqx.filter_eval_shape(question, system, x0, t0))``: a question about the
+    system that shapes alone answer, traced once per system structure and state shape."""
+    key = (question, jtu.tree_structure(system), jtu.tree_map(jnp.shape, x0))
+    try:
+        return _STRUCTURE[key]
+    except (KeyError, TypeError):
+        pass
+    out = answer(*eqx.filter_eval_shape(question, system, x0, t0))
+    try:
+        _STRUCTURE[key] = out
+    except TypeError:  # unhashable static fields: no caching
+        pass
+    return out
+
+
+def _accuracy_parts(s, x, t):
+    return s.invariants(x), s.constraints(t, x)
 
 
 def _reports_accuracy(system, x0, t0) -> bool:
     """Whether the system declares invariants (conserved under every control) or
-    constraints, whose drift simulate() reports (a structural question: traced once per
-    system structure and state shape)."""
-    key = (jtu.tree_structure(system), jtu.tree_map(jnp.shape, x0))
-    try:
-        return _REPORTS[key]
-    except (KeyError, TypeError):
-        pass
-    inv, cons = eqx.filter_eval_shape(lambda s, x, t: (s.invariants(x), s.constraints(t, x)), system, x0, t0)
-    out = bool(inv) or bool(cons)
-    try:
-        _REPORTS[key] = out
-    except TypeError:  # unhashable static fields: no caching
-        pass
-    return out
+    constraints, whose drift simulate() reports."""
+    return _structural(_accuracy_parts, system, x0, t0, lambda inv, cons: bool(inv) or bool(cons))
+
+
+def _guards_and_constraints(s, x, t):
+    return dict(s.guards(x)), s.constraints(t, x)
+
+
+def _check_structure(system, x0, t0):
+    """(guard names, whether to project after each step): what the solve's program needs
+    from ``member_report``, known from shapes before the report runs."""
+    return _structural(_guards_and_constraints, system, x0, t0,
+                       lambda guards, cons: (tuple(guards), _drifting_constraints(cons)))
 
 
 _GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"
