@@ -266,3 +266,34 @@ def test_pontryagin_names_a_terminal_constraint_that_is_nan_at_the_start():
         controls.solve_pontryagin(ocp, p0_guess=jnp.array([jnp.nan, 0.0]))
     with pytest.raises(controls.ProblemError, match="solver must be one of"):
         controls.solve_pontryagin(ocp, solver="bfgs")
+
+
+def test_eager_checks_raise_before_the_solve_runs_and_the_projected_start_is_solved(tmp_path, monkeypatch):
+    """An eager simulate() traces its checks, its solve and its diagnostics before it runs
+    any of them (each compiles in the background as soon as it is traced); the checks
+    still run first: a start off the constraints raises without the solve's program ever
+    being called, and with project=True the solve starts from the projected state (its
+    first saved state is on S^3 to rounding, not at |p| = 2)."""
+    from nhjax import _programs
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    called = []
+    real_call = _programs.call
+
+    def recording(name, *args, **kwargs):
+        called.append(name)
+        return real_call(name, *args, **kwargs)
+
+    monkeypatch.setattr(_programs, "call", recording)
+    ball = BallOnPlatter()
+    x = ball.initial_state(u1=1.0, u2=0.5, u1_dot=0.2, u2_dot=1.0, spin=0.3)
+    bad = x.at[3:7].multiply(2.0)
+    with pytest.raises(E.ConstraintViolationError, match="position.*Pass project=True"):
+        nhjax.simulate(ball, bad, 0.5)
+    assert called == ["report"]
+    called.clear()
+    tr = nhjax.simulate(ball, bad, 0.5, project=True)
+    assert called == ["report", "simulate", "diagnose"]
+    assert abs(float(jnp.linalg.norm(tr.xs[0, 3:7])) - 1.0) < 1e-14
+    assert float(tr.constraint_drift["position"]) < 1e-12

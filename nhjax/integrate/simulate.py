@@ -693,7 +693,14 @@ def simulate(
       stays out of the error norm, so the steps are those of the solve without it.
     * ``diagnostics``: the invariants, constraint residuals and controls evaluated
       at every saved time after the solve (vectorized): proportional to the saved
-      times, and a second, small program for eager calls.
+      times, and a second, small program for eager calls (compiled, like the input
+      checks, with XLA's quick settings: ``nhjax._programs.QUICK_OPTIONS``).
+    * a projected solve (``project_steps``) also projects its saved states, one at a
+      time after the loop (a loop, not vmap: a smaller program).
+
+    A first eager call traces its programs (input checks, solve, diagnostics) one
+    after the other and compiles each in the background as soon as it is traced; the
+    checks run, and raise, before the solve runs.
     * ``progress``: a host callback in the loop, and a second compiled program.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
