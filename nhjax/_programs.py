@@ -500,6 +500,8 @@ _TRACED = object()  # the call is under an outer trace
 #: numbers may differ from a default compile in the last bits. The solves themselves
 #: keep XLA's defaults.
 QUICK_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+
+
 def _pickle_equinox_missing():
     """Pickle equinox's MISSING sentinel (in the tree structure of every equinox module)
     as a reference to the module's singleton: pickled by value it comes back as a new

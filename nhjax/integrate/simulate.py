@@ -341,8 +341,8 @@ def _finish(system, control, x0, t0, sol, static: _Static):
 
         # a loop over the rows, not vmap: the batched projection (batched Jacobians and
         # LAPACK solves) is a second, larger program beside the step's own projection;
-        # one row at a time XLA compiles 0.8-1.5 s less of it for the scenes with
-        # constraints (BallInCone, ThreeCylinders), for ~0.5-1 ms more per solve
+        # one row at a time XLA compiled 0.7-1.6 s less of it for the scenes with
+        # constraints (BallInCone, ThreeCylinders), for ~0.7-1 ms more per solve
         xs = jax.lax.map(lambda row: onto(*row), (ts_saved, xs))
 
     invariants, drift, constraint_drift, us = {}, {}, {}, None
@@ -493,19 +493,23 @@ def _check_inputs(system, control, x0, t0, constraint_tol, project):
     (``nhjax._validate``); returns (x0 (maybe projected), guard names, whether the
     system has constraints to project onto after each step). Concrete values raise the
     named errors of ``nhjax.errors``; traced ones get the same words as runtime errors."""
-    check_state(system, x0, owner="simulate")
-    check_control(system, control, owner="simulate")
-    args = (system, control, x0, jnp.asarray(t0, float), project)
+    args = _report_args(system, control, x0, t0, project)
     if _is_traced(args):
         x0p, report = _member_report(*args)
-    else:  # through the program cache: a new process does not trace the checks again
-        x0p, report = _programs.call("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    guard_names, constrained = tuple(report["guards"]), _drifting_constraints(report["constraints"])
-    if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
-        x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
-        return x0p, guard_names, constrained
-    raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
-    return x0p, guard_names, constrained
+        if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
+            x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
+            return x0p, tuple(report["guards"]), _drifting_constraints(report["constraints"])
+        raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
+    else:
+        x0p, report = _finish_checks(args, system, x0, t0, constraint_tol, project)
+    return x0p, tuple(report["guards"]), _drifting_constraints(report["constraints"])
+
+
+def _report_args(system, control, x0, t0, project):
+    """The host-side checks of x0 and the control; ``member_report``'s arguments."""
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    return system, control, x0, jnp.asarray(t0, float), project
 
 
 def _start_checks(system, control, x0, t0, project):
@@ -513,9 +517,7 @@ def _start_checks(system, control, x0, t0, project):
     ``member_report``'s program traced (its shape errors raise here) and compiled in the
     background. Returns (the report's arguments, guard names, whether to project after
     each step)."""
-    check_state(system, x0, owner="simulate")
-    check_control(system, control, owner="simulate")
-    args = (system, control, x0, jnp.asarray(t0, float), project)
+    args = _report_args(system, control, x0, t0, project)
     _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
     out_def = _programs.output_structure("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
     if out_def is None:
@@ -525,12 +527,13 @@ def _start_checks(system, control, x0, t0, project):
 
 
 def _finish_checks(report_args, system, x0, t0, constraint_tol, project):
-    """The second half: run the report and raise for what it found; returns x0
-    (projected if ``project``)."""
+    """The second half (eager): run the report through the program cache (a new process
+    does not trace it again) and raise for what it found; returns (x0, projected if
+    ``project``, and the report)."""
     x0p, report = _programs.call("report", member_report, report_args,
                                  compiler_options=_programs.QUICK_OPTIONS)
     raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
-    return x0p
+    return x0p, report
 
 
 def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
@@ -697,11 +700,11 @@ def simulate(
       checks, with XLA's quick settings: ``nhjax._programs.QUICK_OPTIONS``).
     * a projected solve (``project_steps``) also projects its saved states, one at a
       time after the loop (a loop, not vmap: a smaller program).
+    * ``progress``: a host callback in the loop, and a second compiled program.
 
     A first eager call traces its programs (input checks, solve, diagnostics) one
     after the other and compiles each in the background as soon as it is traced; the
     checks run, and raise, before the solve runs.
-    * ``progress``: a host callback in the loop, and a second compiled program.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
     if not isinstance(system, AbstractSystem):
@@ -765,7 +768,7 @@ def simulate(
                 _programs.prepare("diagnose", _diagnose_eager, _diagnose_placeholders(system, control, x0, t0a, ts,
                                                                                         track),
                                   error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
-            x0 = _finish_checks(report_args, system, x0, t0, constraint_tol, project)
+            x0, _ = _finish_checks(report_args, system, x0, t0, constraint_tol, project)
         elif static.diagnostics:  # compiled in a thread while the solve compiles
             warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
         traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
