@@ -244,6 +244,39 @@ def test_several_local_devices(tmp_path):
     assert loaded[0] == 0 and loaded[1] >= 2  # the second process ran stored executables
 
 
+def test_two_workers_running_a_projected_batch_at_once_finish(tmp_path):
+    """Two worker threads each running a chunk of a projected batch (the quaternion disk,
+    128 members on 2 workers) finish, and every member's saved states are on S^3 and
+    satisfy the rolling constraints. With the saved states projected by vmap (batched
+    LAPACK solves over members x saved times) this hung on the 2-core development
+    machine: both executions waited, at ~2 % CPU, in a fresh process each time; hence a
+    child process with a time limit."""
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "projected_batch.py"
+    script.write_text(
+        "import numpy as np, nhjax\n"
+        "from nhjax.scenes import RollingDisk\n"
+        "disk = RollingDisk(); quat = disk.quaternion_model()\n"
+        "rng = np.random.default_rng(0)\n"
+        "X = np.stack([np.asarray(disk.to_quaternion_state(disk.initial_state(theta=th, phi_dot=0.4,\n"
+        "    theta_dot=0.2, psi_dot=pd))) for th, pd in zip(rng.uniform(0.1, 0.5, 128), rng.uniform(1, 2, 128))])\n"
+        "tr = nhjax.simulate_batch(quat, X, 1.0, workers=2, saveat=11)\n"
+        "norms = np.linalg.norm(np.asarray(tr.xs)[:, :, 3:7], axis=-1)\n"
+        "worst = max(float(np.max(v)) for v in tr.constraint_drift.values())\n"
+        "steps = np.asarray(tr.num_accepted_steps)\n"
+        "print(float(np.max(np.abs(norms - 1.0))), worst, int(steps.min()), int(steps.max()))\n"
+    )
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    norm_err, drift, fewest, most = (float(v) for v in out.stdout.split()[-4:])
+    assert norm_err < 1e-13 and drift < 1e-12
+    assert most > fewest  # members of different lengths
+
+
 @pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), (8, "many"), (8, 2)])
 def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
     """Members whose step counts differ more than 10x, fewer lanes than members (each lane
