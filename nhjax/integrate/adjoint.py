@@ -77,6 +77,8 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax.flatten_util import ravel_pytree
 
+from .clip_floor import collapsed_prevbefore
+
 __all__ = ["DiscreteAdjoint"]
 
 
@@ -145,12 +147,13 @@ class _Problem(eqx.Module):
         subs = [self.sub, diffrax.SubSaveAt(t1=True)]
         if record:
             subs.append(diffrax.SubSaveAt(steps=True, fn=_save_state))
-        sol = diffrax.diffeqsolve(
-            self.term, self.solver, self.t0, self.t1, self.dt0, y0, args=args,
-            saveat=diffrax.SaveAt(subs=subs), stepsize_controller=self.controller,
-            adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(), event=self.event,
-            max_steps=self.max_steps, throw=False, progress_meter=self.progress_meter,
-        )
+        with collapsed_prevbefore():  # (clip_floor.py: ~0.2 s less XLA per solve)
+            sol = diffrax.diffeqsolve(
+                self.term, self.solver, self.t0, self.t1, self.dt0, y0, args=args,
+                saveat=diffrax.SaveAt(subs=subs), stepsize_controller=self.controller,
+                adjoint=adjoint or diffrax.RecursiveCheckpointAdjoint(), event=self.event,
+                max_steps=self.max_steps, throw=False, progress_meter=self.progress_meter,
+            )
         out = dict(
             ts=sol.ts[0], ys=sol.ys[0], t_final=sol.ts[1][-1],
             y_end=jtu.tree_map(lambda a: a[-1], sol.ys[1]),

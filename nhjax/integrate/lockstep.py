@@ -56,6 +56,7 @@ import numpy as np
 import optimistix as optx
 
 from ..lie.spaces import AbstractSpace, Euclidean, is_space
+from .clip_floor import prev_floats
 from .fast_trig import with_fast_trig
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, _AbstractRKMK
@@ -114,14 +115,6 @@ class _LanesSpace(AbstractSpace):
 def _where(pred, new, old):
     """Per member: new where pred else old (pred [B]; leaves [..., B])."""
     return jtu.tree_map(lambda a, b: jnp.where(pred, a, b), new, old)
-
-
-def _prev_ulps(t, n):
-    """t stepped n floats towards -inf (= n times jnp.nextafter(t, -inf), for finite t)."""
-    bits = jax.lax.bitcast_convert_type(jnp.asarray(t, jnp.float64), jnp.int64)
-    neg_zero_side = jnp.int64(-(2**63)) | n  # -n * (smallest subnormal)
-    out = jnp.where(t > 0, bits - n, jnp.where(t < 0, bits + n, neg_zero_side))
-    return jax.lax.bitcast_convert_type(out, jnp.float64)
 
 
 def _clip_to_end(tprev, tnext, t1, t1_clip_floor, keep_step):
@@ -267,7 +260,7 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         sstate = solver.init(term, pr.t0, tnext, y, a)
         ev = None if event is None else event.cond_fn(pr.t0, y, a)
         as_arrays = lambda tree: jtu.tree_map(jnp.asarray, tree)  # noqa: E731 (Python scalars too)
-        return tnext, as_arrays(cstate), as_arrays(sstate), _prev_ulps(pr.t1, 100), ev
+        return tnext, as_arrays(cstate), as_arrays(sstate), prev_floats(pr.t1, 100), ev
 
     # Per-member results, filled in as members end (solved members overwrite these).
     t0_m = problem.t0 + jnp.zeros(M)
