@@ -106,6 +106,12 @@ def _fit_basis(param, ts):
     return jax.jacfwd(sig)(p0), sig(p0)
 
 
+def prepare_fit(param) -> bool:
+    """Trace the basis program of ``param.fit`` (at its sample times) now and compile it
+    in the background (``nhjax._programs.prepare``)."""
+    return _fit_basis.prepare(param, np.asarray(param.sample_times(), float))
+
+
 def fit_samples(param, ts, us):
     """Least-squares parameters of ``param`` whose signal matches the samples us (N, dim)
     at the times ts (N,): the basis from one compiled program per parametrization

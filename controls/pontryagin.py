@@ -53,6 +53,8 @@ from .problem import (
     check_tolerances,
     compiled,
     host_array,
+    prepare_saved_path,
+    saved_path,
 )
 
 __all__ = ["HamiltonianSystem", "IndirectResult", "continuation", "pmp_residual", "prepare_pmp_residual",
@@ -159,6 +161,14 @@ class _Shooting(eqx.Module):
     atol: jax.Array
     segments: int = eqx.field(static=True)
 
+    @property
+    def residual_size(self):
+        """Entries of ``residual``: the m terminal constraints and the n transversality
+        conditions, and for multiple shooting the 2n jumps of (x, p) at each of the
+        S - 1 inner nodes (as many as the unknowns)."""
+        n, m = self.ham.ocp.x0.shape[0], self.ham.ocp.n_constraints
+        return m + n + (self.segments - 1) * 2 * n
+
     def residual(self, z):
         ocp = self.ham.ocp
         n, m, S = ocp.x0.shape[0], ocp.n_constraints, self.segments
@@ -192,7 +202,8 @@ _LM_MU0 = 1e-12
 
 def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
     """Newton's method (``damped=False``) or Levenberg–Marquardt on the shooting
-    residual r(z): z and r(z), and the number of steps taken.
+    residual r(z) (``shooting.residual``, with ``shooting.residual_size`` entries): z and
+    r(z), and the number of steps taken.
 
     Each iteration evaluates r and its Jacobian once, at the point it tries, in one
     forward-mode pass (``_value_and_jacobian``): the compiled loop holds one copy of
@@ -258,7 +269,7 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
         k, *_, small, going = c
         return (k == 0) | ((k <= max_steps) & going & ~small)
 
-    m = jax.eval_shape(shooting.residual, z0).shape[0]
+    m = shooting.residual_size  # (not by eval_shape: that would trace the shooting's solves once more)
     # (r, J) before the first evaluation: any finite values (its step is masked out)
     start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.asarray(_LM_MU0), jnp.asarray(2.0),
              jnp.zeros((), bool), jnp.ones((), bool))
@@ -545,7 +556,8 @@ def prepare_pmp_residual(ocp: OCP, control, *, rtol=1e-11, atol=1e-11, n_points=
     _check_sweep(ocp, control, "prepare_pmp_residual", rtol, atol, n_points)
     n, m = ocp.x0.shape[0], ocp.n_constraints
     ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
-    return _costate_sweep.prepare(ham, control, np.zeros(n), np.zeros(m), rt, at, n_points, adj)
+    started = prepare_saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points)
+    return _costate_sweep.prepare(ham, control, np.zeros(n), np.zeros(m), rt, at, n_points, adj) or started
 
 
 def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11, n_points=201):
@@ -560,16 +572,13 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     (max H - min H) / max |L| (H is constant along optimal motions of autonomous
     problems), ``multipliers`` (nu), and the arrays ts, xs, ps, us.
     """
-    from .problem import rollout
-
     _check_sweep(ocp, control, "pmp_residual", rtol, atol, n_points)
     m = ocp.n_constraints
     if multipliers is not None:
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
-    # (saved at n_points only so that a caller's rollout with as many points, e.g.
+    # (saved at n_points only so that a caller's path with as many points, e.g.
     # somersault_free_winding's check, shares its compiled program)
-    traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=n_points)
-    xT = np.asarray(traj.xs[0])[-1]
+    xT = saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points, owner="pmp_residual")[1][-1]
     ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
     if multipliers is None and m == 0:
         nu = np.zeros(0)

@@ -505,3 +505,28 @@ def _terminal_values(ocp, xs):
 # on concrete values one program, where eager slicing and arithmetic would be one
 # program each to lower in a new process
 _terminal_values_program = compiled(_terminal_values)
+
+
+@compiled
+def _saved_path(ocp, control, rtol, atol, n_points):
+    traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=n_points)
+    return traj.ts, traj.xs[0]
+
+
+def saved_path(ocp: OCP, control, *, rtol, atol, n_points, owner):
+    """(ts, xs): the times and states x of ``rollout(ocp, control, saveat=n_points)``
+    (numpy), as one compiled program without simulate()'s eager input checks (for
+    callers whose problem and control are checked already), which
+    ``prepare_saved_path`` can start compiling before it is needed. A failed
+    simulation raises ProblemError."""
+    ts, xs = (np.asarray(a) for a in _saved_path(ocp, control, host_array(rtol), host_array(atol), n_points))
+    if not np.all(np.isfinite(xs)):
+        raise ProblemError(f"{owner}: the simulation of the control failed (non-finite states; too many "
+                           f"steps at rtol={rtol}, atol={atol}?)")
+    return ts, xs
+
+
+def prepare_saved_path(ocp: OCP, control, *, rtol, atol, n_points) -> bool:
+    """Trace ``saved_path``'s program for this problem and a control of ``control``'s
+    structure now and compile it in the background (``nhjax._programs.prepare``)."""
+    return _saved_path.prepare(ocp, control, host_array(rtol), host_array(atol), n_points)

@@ -175,6 +175,10 @@ class _Arctan(eqx.Module):
     root: jax.Array
     mix: jax.Array
 
+    @property
+    def residual_size(self):
+        return self.root.shape[0]
+
     def residual(self, z):
         d = self.mix @ (z - self.root)
         return jnp.arctan(d)
@@ -199,3 +203,28 @@ def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
     np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
     zn, rn, _ = _shooting_root(prob, far, 1e-13, 100, False)
     assert not (np.max(np.abs(np.asarray(rn))) <= 1e-12)
+
+
+def test_saved_path_is_the_rollout_and_a_failed_simulation_raises():
+    """controls.problem.saved_path (the compiled re-simulation the costate check and
+    somersault_free_winding's check use): on the LQ problem's optimal control the states
+    are exact (q = 3t^2 - 2t^3, v = 6t - 6t^2) and equal the eager rollout's; a control
+    that turns non-finite raises ProblemError instead of returning NaN states."""
+    from controls.problem import ProblemError, rollout, saved_path
+
+    ocp = lq_problem()
+
+    def u(t, x):
+        return jnp.stack([6.0 - 12.0 * t])
+
+    ts, xs = saved_path(ocp, u, rtol=1e-10, atol=1e-10, n_points=11, owner="test")
+    np.testing.assert_allclose(ts, np.linspace(0, 1, 11), atol=1e-15)
+    np.testing.assert_allclose(xs, np.stack([3 * ts**2 - 2 * ts**3, 6 * ts - 6 * ts**2], 1), atol=1e-12)
+    traj, _, _ = rollout(ocp, u, rtol=1e-10, atol=1e-10, saveat=11)
+    np.testing.assert_allclose(xs, np.asarray(traj.xs[0]), rtol=0, atol=1e-14)
+
+    def blows_up(t, x):
+        return jnp.stack([1.0 / (0.5 - t)])
+
+    with pytest.raises(ProblemError, match="test: the simulation of the control failed"):
+        saved_path(ocp, blows_up, rtol=1e-10, atol=1e-10, n_points=11, owner="test")

@@ -40,11 +40,11 @@ from nhjax.scenes import FallingCat, FallingCatKinematic
 from nhjax.scenes.falling_cat import FallingCatSmooth
 
 from ..direct import DirectResult, solve_direct
-from ..parametrize import Chebyshev, fit_samples
+from ..parametrize import Chebyshev, fit_samples, prepare_fit
 from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V
 
-from ..problem import OCP, ProblemError, as_problem_error, compiled, host_array, rollout
+from ..problem import OCP, ProblemError, as_problem_error, compiled, host_array, prepare_saved_path, saved_path
 from ..sqp import prepare_direct_sqp
 
 
@@ -230,18 +230,23 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
         j = int(np.round((phi_end - turn) / (2 * np.pi)))
         ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
         if i == 0:
-            # the direct method's programs first (the longest compile), then the check's
-            # and the polish's (the same for every j): compiled, or loaded from the
-            # program cache, in the background while the others are traced and run
+            # every program the task needs (the same for every j) is traced here, and
+            # each compiled, or loaded from the program cache, in the background while
+            # the next is traced: the starting loops' fit, the direct method's, the
+            # check's re-simulation, the polish's, and last the costate sweep's, the
+            # quickest to compile (the last compile is the one the task waits for)
+            prepare_fit(param)
             if direct_kw.get("optimizer", "auto") in ("auto", "sqp") and direct_kw.get("shooting") in (None, "single"):
                 prepare_direct_sqp(ocp, param, rtol=rtol, atol=atol)
-            prepare_pmp_residual(ocp, param.signal(np.zeros(param.size)))
+            signal = param.signal(np.zeros(param.size))
+            prepare_saved_path(ocp, signal, rtol=rtol, atol=atol, n_points=n_check)
             if polish:
                 prepare_pontryagin(ocp)
+            prepare_pmp_residual(ocp, signal)
         d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol,
                          progress=f"start winding {k:+d}" if progress else False, **direct_kw)
-        traj, _, _ = rollout(ocp, d.control, rtol=rtol, atol=atol, saveat=n_check)
-        ws = np.asarray(traj.xs[0])[:, :2]
+        ws = saved_path(ocp, d.control, rtol=rtol, atol=atol, n_points=n_check,
+                        owner="somersault_free_winding")[1][:, :2]
         info = dict(start_winding=k, j=j, cost=d.cost, violation=d.violation, converged=d.converged,
                     iterations=d.iterations, winding=float(cat.winding(ws)),
                     min_theta=float(np.min(np.linalg.norm(ws, axis=1))), seconds=d.seconds)
