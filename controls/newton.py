@@ -14,8 +14,8 @@ steps:
   tangent step it first uses secant (Broyden) updates of the constraints'
   Jacobian at the point the step left from, one forward solve per iteration;
   Gauss-Newton with fresh Jacobians only when that does not converge;
-* multipliers lam = argmin |dJ + A^T lam|, A = dpsi/dz (one forward solve and
-  1 + m reverse passes, vmapped);
+* multipliers lam = argmin |dJ + A^T lam|, A = dpsi/dz (the Jacobian of (J, psi)
+  from one forward solve carrying the P parameter tangents);
 * the reduced Hessian Z^T H Z of the Lagrangian J + lam . psi (Z a basis of the
   null space of A) by one-sided differences of its reverse-mode gradient along
   the columns of Z (P - m reverse passes, vmapped);
@@ -30,7 +30,8 @@ there); then the iterate is restored at the requested tolerances and the
 iteration goes on there. The tolerances are arguments of the compiled programs,
 so the switch compiles nothing. Converged (at the requested tolerances only)
 when max |psi| < ctol and max |dJ + A^T lam| / max |dJ| < gtol. Each iteration
-costs P + 1 reverse passes and a few forward solves: worth it for P up to ~100.
+costs a forward solve with P tangents, P - m reverse passes and a few forward solves:
+worth it for P up to ~100.
 """
 
 from __future__ import annotations
@@ -275,7 +276,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
         (tqdm.auto) with the iteration, cost, violation, stationarity and step (False: none).
 
     Each iteration, from a feasible z (psi(z) = 0 to ``ctol``):
-    * multipliers lam = argmin |dJ + A^T lam| (A = dpsi/dz, 1 + m reverse passes);
+    * multipliers lam = argmin |dJ + A^T lam| (A = dpsi/dz, one solve carrying P tangents);
     * the reduced Hessian of the Lagrangian J + lam.psi on the null space of A, by
       one-sided differences of its reverse-mode gradient (P - m reverse passes, vmapped);
     * the Newton step in the null space of A, with the reduced Hessian's negative

@@ -5,7 +5,8 @@ The problem over the control parameters z (P of them) of a parametrization:
     minimize J(z)  subject to  psi(z) = 0 (m terminal constraints),  lo <= z <= hi,
 
 with J and psi from one simulation (``controls.rollout``) and their Jacobian from
-one forward solve and 1 + m reverse passes (``nhjax.DiscreteAdjoint``, vmapped).
+one forward solve carrying the P parameter tangents (``nhjax.DiscreteAdjoint``'s forward
+sensitivities; see ``controls.newton._values_and_jacobian``).
 Each iteration solves the quadratic program
 
     minimize_d  g.d + d.B.d / 2   subject to  psi + A d = 0,  lo - z <= d <= hi - z

@@ -228,3 +228,24 @@ def test_saved_path_is_the_rollout_and_a_failed_simulation_raises():
 
     with pytest.raises(ProblemError, match="test: the simulation of the control failed"):
         saved_path(ocp, blows_up, rtol=1e-10, atol=1e-10, n_points=11, owner="test")
+
+
+def test_direct_jacobian_by_tangents_equals_the_reverse_passes_and_differences():
+    """The direct methods' Jacobian of (J, psi) (controls.newton._values_and_jacobian:
+    one solve carrying the P parameter tangents) against 1 + m reverse passes of the
+    discrete adjoint and against central differences, on the LQ problem with Chebyshev
+    controls (a curved case: the cost is quadratic in the parameters)."""
+    from controls.newton import _Shooting, _values, _values_and_jacobian
+
+    ocp, param = lq_problem(), controls.Chebyshev(4, 1.0, 1)
+    sh = _Shooting(ocp, param, np.asarray(1e-12), np.asarray(1e-12))
+    z = np.array([0.3, -1.2, 0.5, 0.8, -0.4])
+    y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
+    y_rev, vjp = jax.vjp(lambda z: sh.values(z, tangents=False), jnp.asarray(z))
+    D_rev = np.asarray(jax.vmap(vjp)(jnp.eye(y.shape[0]))[0])
+    np.testing.assert_allclose(y, np.asarray(y_rev), rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(D, D_rev, rtol=1e-12, atol=1e-13)
+    h = 1e-4
+    D_fd = np.stack([(_values(sh, z + h * e) - _values(sh, z - h * e)) / (2 * h) for e in np.eye(z.size)], 1)
+    np.testing.assert_allclose(D, D_fd, rtol=1e-7, atol=1e-8)
+    assert np.abs(D[0]).max() > 0.1 and np.abs(D[1:]).max() > 0.1
