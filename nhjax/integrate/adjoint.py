@@ -147,7 +147,7 @@ class _Problem(eqx.Module):
         subs = [self.sub, diffrax.SubSaveAt(t1=True)]
         if record:
             subs.append(diffrax.SubSaveAt(steps=True, fn=_save_state))
-        with collapsed_prevbefore():  # (clip_floor.py: ~0.2 s less XLA per solve)
+        with collapsed_prevbefore():  # (clip_floor.py: a smaller program to compile)
             sol = diffrax.diffeqsolve(
                 self.term, self.solver, self.t0, self.t1, self.dt0, y0, args=args,
                 saveat=diffrax.SaveAt(subs=subs), stepsize_controller=self.controller,

@@ -5,10 +5,9 @@ step is rounded to the end of the interval, t1 stepped 100 floats down, by calli
 ``equinox.internal.prevbefore`` 100 times in sequence (diffrax/_integrate.py,
 ``loop``). t1 is an argument of nhjax's programs (a new horizon does not compile
 again), so the chain is not folded: each link is a bitwise nextafter of about 17
-operations, and XLA compiles the 1700 of them as one straight-line kernel, about
-0.2 s of XLA's time for every diffrax loop in a program (measured on this
-project's 2-core machine: a first ``simulate()`` holds one such loop, a direct
-optimal-control solve one or two, a Pontryagin solve two).
+operations, and XLA compiles all of them as one long straight-line kernel for every
+diffrax loop in a program (a first ``simulate()`` holds one such loop, a
+Pontryagin solve two); the README's ``compile_times`` section has the measured cost.
 
 ``collapsed_prevbefore()`` (entered around nhjax's ``diffeqsolve`` calls while
 they are traced) puts in its place a function with the same values that
