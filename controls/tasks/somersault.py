@@ -223,26 +223,30 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     """
     t_start = time.perf_counter()
     param = Chebyshev(10, T, 2) if param is None else param
+    # every program the task needs is traced first (the problems of all starts share one
+    # structure; only the fiber target differs), and each compiled, or loaded from the
+    # program cache, in the background while the next is traced: the starting loops'
+    # fit, the direct method's, the check's re-simulation, the polish's, and last the
+    # costate sweep's, the quickest to compile (the last compile is the one the task
+    # waits for)
+    shape = velocity_somersault_smooth(cat, theta0, turn, T)
+    prepare_fit(param)
+    if direct_kw.get("optimizer", "auto") in ("auto", "sqp") and direct_kw.get("shooting") in (None, "single"):
+        prepare_direct_sqp(shape, param, rtol=rtol, atol=atol)
+    signal = param.signal(np.zeros(param.size))
+    prepare_saved_path(shape, signal, rtol=rtol, atol=atol, n_points=n_check)
+    if polish:
+        prepare_pontryagin(shape)
+    prepare_pmp_residual(shape, signal)
     f0 = float(_fiber_coefficient(cat, np.asarray(theta0, float)))
     starts, best, best_ocp = [], None, None
-    for i, k in enumerate(start_windings):
+    problems = {0: shape}  # by fiber class j
+    for k in start_windings:
         phi_end = 2 * np.pi * k * (1 - f0) if k else 0.0
         j = int(np.round((phi_end - turn) / (2 * np.pi)))
-        ocp = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
-        if i == 0:
-            # every program the task needs (the same for every j) is traced here, and
-            # each compiled, or loaded from the program cache, in the background while
-            # the next is traced: the starting loops' fit, the direct method's, the
-            # check's re-simulation, the polish's, and last the costate sweep's, the
-            # quickest to compile (the last compile is the one the task waits for)
-            prepare_fit(param)
-            if direct_kw.get("optimizer", "auto") in ("auto", "sqp") and direct_kw.get("shooting") in (None, "single"):
-                prepare_direct_sqp(ocp, param, rtol=rtol, atol=atol)
-            signal = param.signal(np.zeros(param.size))
-            prepare_saved_path(ocp, signal, rtol=rtol, atol=atol, n_points=n_check)
-            if polish:
-                prepare_pontryagin(ocp)
-            prepare_pmp_residual(ocp, signal)
+        if j not in problems:
+            problems[j] = velocity_somersault_smooth(cat, theta0, turn, T, j=j)
+        ocp = problems[j]
         d = solve_direct(ocp, param, loop_guess(param, theta0, T, k), rtol=rtol, atol=atol,
                          progress=f"start winding {k:+d}" if progress else False, **direct_kw)
         ws = saved_path(ocp, d.control, rtol=rtol, atol=atol, n_points=n_check,
