@@ -86,6 +86,18 @@ def test_the_chain_leaves_the_compiled_program():
     assert eqxi.prevbefore is _EQUINOX  # put back
 
 
+def test_the_chain_is_traced_once(monkeypatch):
+    """The 100 links are calls of one nested jit: prev_floats's body is traced once, not
+    100 times (a solve's tracing, which no compilation cache stores, is part of the
+    time to a first answer)."""
+    body, traces = clip_floor.prev_floats.fun, []
+    monkeypatch.setattr(clip_floor.prev_floats, "fun", lambda *a: traces.append(1) or body(*a))
+    with clip_floor.collapsed_prevbefore():
+        out = jax.jit(_chain)(jnp.full((7,), 3.0))  # a shape no other test traces
+    assert len(traces) == 1
+    assert (_bits(out) == _bits(3.0) - N).all()
+
+
 def test_nested_and_concurrent_uses_put_equinox_back_once_all_leave():
     inside = threading.Event()
     leave = threading.Event()

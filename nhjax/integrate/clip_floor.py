@@ -73,6 +73,10 @@ def _prev_floats_jvp(primals, tangents):
     return prev_floats(x, n), tangents[0]
 
 
+# a nested jit with the count an argument: the 100 links of a chain are traced once
+# (not 100 times) and XLA inlines the calls, then drops the 99 unused ones
+_prev_floats_nested = jax.jit(prev_floats)
+
 _RESULTS: dict = {}  # id(result) -> (result, start, k): result = prev_floats(start, k)
 _LOCK = threading.Lock()
 _DEPTH = 0
@@ -84,7 +88,7 @@ def _prevbefore(x):
     ``x`` is one of this function's own results."""
     known = _RESULTS.get(id(x))
     start, k = (known[1], known[2] + 1) if known is not None and known[0] is x else (x, 1)
-    out = prev_floats(start, k)
+    out = _prev_floats_nested(start, k)
     _RESULTS[id(out)] = (out, start, k)
     return out
 
