@@ -514,7 +514,7 @@ def continuation(solve: Callable, values, z0=None):
     return results
 
 
-@compiled
+@compiled(quick=True)
 def _costate_sweep(ham, control, xT, nu, rtol, atol, n_points, adjoint):
     """State and costate integrated backward from T along the control, with dH/du etc."""
     ocp = ham.ocp

@@ -92,14 +92,23 @@ def host_array(x):
     return jnp.asarray(np.asarray(x), float)
 
 
-def compiled(fn):
+def compiled(fn=None, *, quick: bool = False):
     """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``.
 
     Called on concrete values, the program comes from nhjax's program cache
     (``nhjax._programs``): in a new process its compiled executable is loaded from disk
     instead of tracing, lowering and compiling the solver's programs again, which is
     most of a warm first answer. Under an outer trace, or when the arguments cannot be
-    fingerprinted, it is the plain ``eqx.filter_jit``."""
+    fingerprinted, it is the plain ``eqx.filter_jit``.
+
+    ``quick=True`` (as ``@compiled(quick=True)``): XLA's quick settings
+    (``nhjax._programs.QUICK_OPTIONS``: about half the compile time, the run slower
+    and its last bits different from a default compile), for programs that run a few
+    times per call and whose compile the first answer waits for, such as the checks
+    of a solution (re-simulation, costate sweep)."""
+    if fn is None:
+        return functools.partial(compiled, quick=quick)
+    options = _programs.QUICK_OPTIONS if quick else None
 
     @functools.wraps(fn)
     def counted(*args, **kwargs):  # runs only while tracing
@@ -119,13 +128,14 @@ def compiled(fn):
         with nan_errors():
             if kwargs:
                 return jitted(*args, **kwargs)
-            return _programs.call(name, counted, args, error_mode="nan", fallback=jitted)
+            return _programs.call(name, counted, args, error_mode="nan", fallback=jitted,
+                                  compiler_options=options)
 
     def prepare(*args):
         """Trace this program for ``args``'s structure now and compile it in the
         background (``nhjax._programs.prepare``), for a solver that calls it later."""
         with nan_errors():
-            return _programs.prepare(name, counted, args, error_mode="nan")
+            return _programs.prepare(name, counted, args, error_mode="nan", compiler_options=options)
 
     call.jitted = jitted
     call.prepare = prepare
@@ -507,7 +517,7 @@ def _terminal_values(ocp, xs):
 _terminal_values_program = compiled(_terminal_values)
 
 
-@compiled
+@compiled(quick=True)
 def _saved_path(ocp, control, rtol, atol, n_points):
     traj, _, _ = rollout(ocp, control, rtol=rtol, atol=atol, saveat=n_points)
     return traj.ts, traj.xs[0]
