@@ -424,7 +424,8 @@ def _solve_cached(*args):
     if static.progress:  # a host callback in the loop: jax.export cannot keep that program
         return _solve(*args)
     mode = None if static.runtime_checks else "off"  # _solve_impl traces with checks off
-    return _from_plain(_programs.call("simulate", _solve_plain, args, error_mode=mode), static.state_names)
+    return _from_plain(_programs.call("simulate", _solve_plain, args, error_mode=mode,
+                                     compiler_options=_programs.SOLVE_OPTIONS), static.state_names)
 
 
 def _diagnose_eager(*args):
@@ -704,7 +705,11 @@ def simulate(
 
     A first eager call traces its programs (input checks, solve, diagnostics) one
     after the other and compiles each in the background as soon as it is traced; the
-    checks run, and raise, before the solve runs.
+    checks run, and raise, before the solve runs. Its solve is compiled with XLA's
+    older loop emitters (``nhjax._programs.SOLVE_OPTIONS``: a shorter compile, the same
+    run time); under ``jax.jit`` the solve is part of the caller's program and compiled
+    with the caller's settings, so the last bits of its results may differ from an
+    eager call's.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
     if not isinstance(system, AbstractSystem):
@@ -763,7 +768,8 @@ def simulate(
             if not static.progress:
                 _programs.prepare("simulate", _solve_plain,
                                   (system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0,
-                                   core, show), error_mode="off")
+                                   core, show), error_mode="off",
+                                  compiler_options=_programs.SOLVE_OPTIONS)
             if static.diagnostics:
                 _programs.prepare("diagnose", _diagnose_eager, _diagnose_placeholders(system, control, x0, t0a, ts,
                                                                                         track),
