@@ -124,34 +124,25 @@ class ConstrainedLagrangian(AbstractSystem):
         )
 
     def dynamics_terms(self, t, q, qd, u):
-        """(M, rhs, A, b): the pieces of the KKT system at (t, q, q').
-
-        M = d^2 T / dq'^2, rhs = dL/dq - (d/dq dT/dq') q' + Q (the Lagrange equations
-        with q'' moved to the left), A = dc/dq' for all velocity-level constraints c
-        (the position constraints differentiated once) and b = dc/dt + (dc/dq) q', so
-        that A q'' + b = 0. Each family comes from one linearization carrying n + 1
-        tangents at once: the n unit velocities (the columns of M and A) and the motion
-        (t, q) -> (1, q') at fixed q' (the velocity-dependent terms), instead of
-        separate reverse, forward and Jacobian passes; the compiled vector field is
-        smaller (it is traced and compiled for every first solve of a system)."""
-        n = q.shape[0]
-        tt = jnp.asarray(t, q.dtype)
-        dq = jnp.concatenate([jnp.zeros((n, n), q.dtype), qd[None]])
-        dv = jnp.concatenate([jnp.eye(n, dtype=q.dtype), jnp.zeros((1, n), q.dtype)])
-        (dLdq, _), lin = jax.linearize(lambda qq, vv: jax.grad(self.lagrangian, argnums=(0, 1))(qq, vv), q, qd)
-        _, dp = jax.vmap(lin)(dq, dv)
-        M = dp[:n].T
-        dpdq_qd = dp[n]
+        """(M, rhs, A, b): the pieces of the KKT system at (t, q, q')."""
+        M = self.mass_matrix(q)
+        dLdq = jax.grad(self.lagrangian, argnums=0)(q, qd)
+        # (d/dq dT/dq') q' by a forward-mode directional derivative
+        dpdq_qd = jax.jvp(lambda qq: self.momentum(qq, qd), (q,), (qd,))[1]
         if u is None:
             u = jnp.zeros((self.control_dim,), q.dtype)
         rhs = dLdq - dpdq_qd + self.generalized_force(t, q, qd, u)
-        c, clin = jax.linearize(self._all_velocity_constraints, tt, q, qd)
-        dt = jnp.concatenate([jnp.zeros((n,), q.dtype), jnp.ones((1,), q.dtype)])
-        dc = jax.vmap(clin)(dt, dq, dv)
-        A = dc[:n].T
-        b = dc[n]
+        A = self.constraint_jacobian(t, q)
+        # b = d/dt c at fixed q'' = 0: derivative of c along (t, q) -> (1, q')
+        tt = jnp.asarray(t, q.dtype)
+        b = jax.jvp(
+            lambda s, qq: self._all_velocity_constraints(s, qq, qd),
+            (tt, q),
+            (jnp.ones((), q.dtype), qd),
+        )[1]
         alpha, beta = self.baumgarte
         if alpha or beta:
+            c = self._all_velocity_constraints(t, q, qd)
             phi = self.position_constraints(t, q)
             pad = jnp.zeros(c.shape[0] - jnp.atleast_1d(phi).shape[0], q.dtype)
             b = b + 2 * alpha * c + beta**2 * jnp.concatenate([pad, jnp.atleast_1d(phi)])
