@@ -168,3 +168,30 @@ def test_first_stage_in_the_stage_scan_is_the_same_solve_with_one_copy_of_the_ve
         np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=0, atol=1e-11)
     R = ys1[0][0] if vmapped else ys1[0]
     assert np.abs(np.asarray(R) - np.asarray(Rref)).max() < 300 * 1e-10  # and right
+
+
+def test_a_solve_traces_the_step_once(monkeypatch):
+    """diffrax traces a solver's step several times per solve (its loop body to see what
+    stays static, the loop itself, dense output at an event); the step is a nested jit,
+    so its body is traced once, and the solve is the same as with the step inlined."""
+    import jax
+
+    from nhjax.integrate import rkmk
+    from nhjax.scenes import BallInCone
+
+    body, traces = rkmk._AbstractRKMK._step, []
+
+    def counted(self, *args):
+        traces.append(1)
+        return body(self, *args)
+
+    ball = BallInCone()  # projected steps and a guard event: every kind of step trace
+    x0 = ball.initial_state(rho=3.0, rho_dot=0.5, alpha_dot=0.3, spin=1.0)
+    monkeypatch.setattr(rkmk._AbstractRKMK, "_step", counted)
+    nested = jax.jit(lambda x: nhjax.simulate(ball, x, 4.0, saveat=2, diagnostics=False).xs[-1])(x0)
+    assert len(traces) == 1
+    monkeypatch.setattr(rkmk, "_nested_step", lambda solver, *args: solver._step(*args))
+    # (another number of saved times: the solve's own jit would reuse its trace)
+    inlined = jax.jit(lambda x: nhjax.simulate(ball, x, 4.0, saveat=3, diagnostics=False).xs[-1])(x0)
+    assert len(traces) >= 4
+    np.testing.assert_allclose(nested, inlined, rtol=0, atol=1e-13)

@@ -260,6 +260,13 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        # a nested jit: diffrax traces a solver's step several times per solve (its loop
+        # body once to see what it makes static, again for the loop, and for dense output
+        # at an event); one trace per argument structure is reused for the others, and
+        # XLA inlines the call (the compiled program is the same)
+        return _nested_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
+
+    def _step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
@@ -362,3 +369,11 @@ class RKMK4(_AbstractRKMK):
     """Classical 4th-order Munthe-Kaas method; fixed steps (``ConstantStepSize``)."""
 
     tableau: ClassVar[_Tableau] = _RK4
+
+
+@eqx.filter_jit
+def _nested_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
+    """``solver._step`` as a nested jit (see ``_AbstractRKMK.step``); Python values among
+    the arguments (e.g. a literal ``made_jump``) stay static."""
+    return solver._step(terms, t0, t1, y0, args, solver_state, made_jump)
+
