@@ -102,8 +102,8 @@ def compiled(fn=None, *, quick: bool = False):
     fingerprinted, it is the plain ``eqx.filter_jit``.
 
     ``quick=True`` (as ``@compiled(quick=True)``): XLA's quick settings
-    (``nhjax._programs.QUICK_OPTIONS``: about half the compile time, the run slower
-    and its last bits different from a default compile), for programs that run a few
+    (``nhjax._programs.QUICK_OPTIONS``: a shorter compile, a slower run, and last
+    bits that differ from a default compile's), for programs that run a few
     times per call and whose compile the first answer waits for, such as the checks
     of a solution (re-simulation, costate sweep)."""
     if fn is None:

@@ -502,11 +502,11 @@ _TRACED = object()  # the call is under an outer trace
 QUICK_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
 
 #: XLA settings for an eager simulate()'s solve: XLA's older loop emitters instead of
-#: its fusion emitters. On the registry's scenes the solve compiles in about 20-30 %
-#: less time and runs as fast (benchmarks/compile_times.py; LLVM keeps its default
-#: optimization, which the run time needs); the last bits of the results differ from
-#: a default compile, such as the one of a user's ``jax.jit(simulate)``. An XLA
-#: without the option compiles with its defaults.
+#: its fusion emitters. On the registry's scenes the solve compiles in less time and
+#: runs as fast (LLVM keeps its default optimization, which the run time needs; the
+#: README's compile_times section has the figures); the last bits of the results
+#: differ from a default compile, such as the one of a user's ``jax.jit(simulate)``.
+#: An XLA without the option compiles with its defaults.
 SOLVE_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 
 

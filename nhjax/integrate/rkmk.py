@@ -263,7 +263,7 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         # a nested jit: diffrax traces a solver's step several times per solve (its loop
         # body once to see what it makes static, again for the loop, and for dense output
         # at an event); one trace per argument structure is reused for the others, and
-        # XLA inlines the call (the compiled program is the same)
+        # XLA inlines the call
         return _nested_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
 
     def _step(self, terms, t0, t1, y0, args, solver_state, made_jump):
@@ -376,4 +376,3 @@ def _nested_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
     """``solver._step`` as a nested jit (see ``_AbstractRKMK.step``); Python values among
     the arguments (e.g. a literal ``made_jump``) stay static."""
     return solver._step(terms, t0, t1, y0, args, solver_state, made_jump)
-
