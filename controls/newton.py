@@ -119,7 +119,7 @@ def _lagrangian_gradients(sh, Z, w):
     return jax.vmap(lambda z: jax.vjp(sh.values, z)[1](w)[0])(Z)
 
 
-@compiled
+@compiled(quick=True)
 def _control_cost_hessian(ocp, param, z):
     """Hessian of int L(t, x0, u(t; z)) dt by composite Gauss-Legendre quadrature: the
     exact Hessian of the cost when L depends on u only (int |u|^2 here). The nodes

@@ -94,7 +94,7 @@ class Parametrization(eqx.Module):
         return params
 
 
-@compiled
+@compiled(quick=True)
 def _fit_basis(param, ts):
     """(basis, offset): the signal at the times ts (N,), flattened, is basis @ p + offset
     (every parametrization here is linear in its parameters)."""

@@ -184,6 +184,48 @@ class _Arctan(eqx.Module):
         return jnp.arctan(d)
 
 
+class Pendulum(AbstractSystem):
+    control_dim = 1
+    state_names = ("q", "v")
+
+    def vector_field(self, t, x, u):
+        return jnp.stack([x[1], -jnp.sin(x[0]) + u[0]])
+
+
+def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
+    """solve_pontryagin's extremal, cost and residual (single shooting) come from the root
+    find's last accepted solve: its trajectory starts at the returned p0, the residual
+    recomputed from its end with the returned nu is the reported one, and the cost is
+    the running cost's quadrature along it. Checked for Newton, and for
+    Levenberg-Marquardt from a far guess stopped after every budget of 1-10 steps (its
+    trials are rejected from the 2nd to the 9th: the run must return the last accepted
+    point's extremal, not the trial's), and from a nearer one to convergence."""
+    from controls.pontryagin import _terminal_residual
+
+    # swing a pendulum from rest at the bottom to rest at q = 2 in T = 3 (nonlinear)
+    ocp = controls.OCP(Pendulum(), jnp.zeros(2), 3.0, running_cost=HalfSquare(),
+                       terminal_constraints=Target(jnp.array([2.0, 0.0])))
+    runs = [("newton", None, 100)] + [("lm", np.array([200.0, 100.0]), k) for k in range(1, 11)]
+    runs += [("lm", np.array([40.0, -30.0]), 100)]
+    for solver, guess, budget in runs:
+        r = controls.solve_pontryagin(ocp, guess, solver=solver, max_steps=budget, progress=False)
+        xs = np.asarray(r.trajectory.xs)
+        np.testing.assert_array_equal(xs[0], np.concatenate([[0.0, 0.0], r.p0]))
+        res = np.asarray(_terminal_residual(ocp, jnp.asarray(xs[-1, :2]), jnp.asarray(xs[-1, 2:]), jnp.asarray(r.nu)))
+        assert np.max(np.abs(res)) == pytest.approx(r.residual, rel=1e-12, abs=1e-16)
+        assert r.violation == pytest.approx(np.max(np.abs(xs[-1, :2] - [2.0, 0.0])), rel=1e-12, abs=1e-16)
+        # trapezoid on 401 points: agrees with the integrated cost to its O(h^2) error
+        trap = np.trapezoid(0.5 * r.controls[:, 0] ** 2, np.asarray(r.trajectory.ts))
+        assert abs(trap - r.cost) < 1e-4 * r.cost
+        if solver == "newton":
+            ref = r
+            assert r.converged and r.iterations >= 3
+    # the damped iteration with the full budget ends at the same extremal
+    assert r.converged
+    np.testing.assert_allclose(r.p0, ref.p0, rtol=1e-8)
+    np.testing.assert_allclose(r.cost, ref.cost, rtol=1e-10)
+
+
 def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
     """The Pontryagin solver's root find (Newton and Levenberg-Marquardt on a residual
     and its forward-mode Jacobian): both reach the root of a smooth system to 1e-12
@@ -194,14 +236,14 @@ def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
     c, s = np.cos(0.3), np.sin(0.3)
     prob = _Arctan(jnp.array([0.4, -1.3]), jnp.array([[c, -s], [s, c]]))
     for damped in (False, True):
-        z, r, steps = _shooting_root(prob, jnp.array([0.9, -1.0]), 1e-13, 50, damped)
+        z, r, steps, _ = _shooting_root(prob, jnp.array([0.9, -1.0]), 1e-13, 50, damped)
         np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
         assert np.max(np.abs(np.asarray(r))) <= 1e-12 and 1 <= int(steps) <= 30
     # a start where the undamped iteration does not converge within the budget
     far = jnp.array([0.4, -1.3]) + prob.mix.T @ jnp.array([8.0, -8.0])
-    z, r, steps = _shooting_root(prob, far, 1e-13, 100, True)
+    z, r, steps, _ = _shooting_root(prob, far, 1e-13, 100, True)
     np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
-    zn, rn, _ = _shooting_root(prob, far, 1e-13, 100, False)
+    zn, rn, _, _ = _shooting_root(prob, far, 1e-13, 100, False)
     assert not (np.max(np.abs(np.asarray(rn))) <= 1e-12)
 
 

@@ -142,7 +142,7 @@ def fixed_theta_costates(cat: FallingCatKinematic, theta0, T, windings=1):
     return p, p
 
 
-@compiled
+@compiled(quick=True)
 def _fixed_theta_costates(cat, theta0, c):
     """p(0) of ``fixed_theta_costates`` for chi' = c [rad/s] (one program, not an eager
     operation per term)."""
@@ -152,7 +152,7 @@ def _fixed_theta_costates(cat, theta0, c):
     return jnp.stack([jnp.zeros(()), p_chi, p_psi])
 
 
-@compiled
+@compiled(quick=True)
 def _fiber_coefficient(cat, theta0):
     """f(theta0), as one program (not an eager operation per term)."""
     return cat.f(theta0)

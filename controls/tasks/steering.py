@@ -299,7 +299,7 @@ def linear_guess(ocp: OCP, param, rcond=1e-10, multipliers=False):
     return (p, -2.0 * lam) if multipliers else p
 
 
-@compiled
+@compiled(quick=True)
 def _linear_control(ocp, ts, rcond):
     rob, x0, T = ocp.system, ocp.x0, ocp.T
     n = 2 + 3 + 3 + x0[1].shape[0]
