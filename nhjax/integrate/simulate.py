@@ -147,6 +147,9 @@ class _Static:
     # errors as NaN): part of the key of the nested jit, so a trace made in one mode is
     # never reused in another
     error_mode: str = ""
+    # a projected solve's saved states are projected in its program; False: the caller
+    # projects them (an eager call, in its second program: see simulate)
+    project_saved: bool = True
 
 
 def _is_traced(*trees) -> bool:
@@ -238,19 +241,21 @@ def _diagnose(system, control, x0, t0, ts_saved, xs, t_final, work, track):
     return invariants, drift, {k: _max_abs(v) for k, v in cons.items()}, us
 
 
-def _diagnose_placeholders(system, control, x0, t0, ts, track):
-    """Arguments of the eager path's diagnostics program with zeros for the solution."""
+def _diagnose_placeholders(system, control, x0, t0, ts, track, project, diagnostics):
+    """Arguments of the eager path's second program (``_saved_eager``) with zeros for the
+    solution."""
     n = ts.shape[0]
     xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
     work = jnp.zeros(n) if track else None
-    return system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track
+    return system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track, project, diagnostics
 
 
-def _warm_diagnostics(system, control, x0, t0, ts, track):
-    """Compile the eager path's diagnostics program (run on zeros of the right shapes),
-    so that a first simulate() compiles it while _solve compiles."""
-    jax.block_until_ready(_programs.call("diagnose", _diagnose_eager,
-                                         _diagnose_placeholders(system, control, x0, t0, ts, track),
+def _warm_diagnostics(system, control, x0, t0, ts, track, project, diagnostics):
+    """Compile the eager path's second program (run on zeros of the right shapes), so
+    that a first simulate() compiles it while _solve compiles."""
+    jax.block_until_ready(_programs.call("diagnose", _saved_eager,
+                                         _diagnose_placeholders(system, control, x0, t0, ts, track, project,
+                                                                diagnostics),
                                          error_mode="off", compiler_options=_programs.QUICK_OPTIONS))
 
 
@@ -322,6 +327,24 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
     return problem, y0
 
 
+def _project_saved(system, x0, t0, ts_saved, xs):
+    """A projected solve's saved states (dense output between projected steps) onto the
+    constraints; rows never reached (t = inf) stay as they are."""
+
+    def onto(t, x):
+        reached = jnp.isfinite(t)
+        # unreached rows are projected from x0 (finite: no NaN in a derivative) and dropped
+        safe = jtu.tree_map(lambda a, b: jnp.where(reached, a, b), x, x0)
+        p = _project_state(system, jnp.where(reached, t, t0), safe)
+        return jtu.tree_map(lambda a, b: jnp.where(reached, a, b), p, x)
+
+    # a loop over the rows, not vmap: the batched projection (batched Jacobians and
+    # LAPACK solves) is a second, larger program beside the step's own projection;
+    # one row at a time XLA compiled 0.7-1.6 s less of it for the scenes with
+    # constraints (BallInCone, ThreeCylinders), for ~0.7-1 ms more per solve
+    return jax.lax.map(lambda row: onto(*row), (ts_saved, xs))
+
+
 def _finish(system, control, x0, t0, sol, static: _Static):
     """The Trajectory of one solve from its raw output ``sol`` (``_Problem.run``'s dict)."""
     track = static.track_work
@@ -331,19 +354,8 @@ def _finish(system, control, x0, t0, sol, static: _Static):
         xs, work = ys
     else:
         xs, work = ys, None
-    if static.project_steps:  # saved states onto the constraints (rows never reached stay inf)
-        def onto(t, x):
-            reached = jnp.isfinite(t)
-            # unreached rows are projected from x0 (finite: no NaN in a derivative) and dropped
-            safe = jtu.tree_map(lambda a, b: jnp.where(reached, a, b), x, x0)
-            p = _project_state(system, jnp.where(reached, t, t0), safe)
-            return jtu.tree_map(lambda a, b: jnp.where(reached, a, b), p, x)
-
-        # a loop over the rows, not vmap: the batched projection (batched Jacobians and
-        # LAPACK solves) is a second, larger program beside the step's own projection;
-        # one row at a time XLA compiled 0.7-1.6 s less of it for the scenes with
-        # constraints (BallInCone, ThreeCylinders), for ~0.7-1 ms more per solve
-        xs = jax.lax.map(lambda row: onto(*row), (ts_saved, xs))
+    if static.project_steps and static.project_saved:
+        xs = _project_saved(system, x0, t0, ts_saved, xs)
 
     invariants, drift, constraint_drift, us = {}, {}, {}, None
     if static.diagnostics:
@@ -428,10 +440,17 @@ def _solve_cached(*args):
                                      compiler_options=_programs.SOLVE_OPTIONS), static.state_names)
 
 
-def _diagnose_eager(*args):
-    """_diagnose traced without equinox's runtime checks (eager calls: checked states)."""
+def _saved_eager(system, control, x0, t0, ts, xs, t_final, work, track, project, diagnostics):
+    """An eager call's second program, run on the solve's saved states: their
+    projection (``project``: a projected solve) and the diagnostics, traced without
+    equinox's runtime checks (eager calls: checked states), compiled with XLA's quick
+    settings. Returns (xs, diagnostics or None). The saved states' projection is a
+    second copy of the step's: here it compiles beside the solve's program, and in
+    less time, for a slower run of that loop over the saved states."""
     with _error_checks(False):
-        return _diagnose(*args)
+        if project:
+            xs = _project_saved(system, x0, t0, ts, xs)
+        return xs, (_diagnose(system, control, x0, t0, ts, xs, t_final, work, track) if diagnostics else None)
 
 
 _ERROR_MODE_LOCK = threading.RLock()
@@ -700,12 +719,15 @@ def simulate(
       times, and a second, small program for eager calls (compiled, like the input
       checks, with XLA's quick settings: ``nhjax._programs.QUICK_OPTIONS``).
     * a projected solve (``project_steps``) also projects its saved states, one at a
-      time after the loop (a loop, not vmap: a smaller program).
+      time after the loop (a loop, not vmap: a smaller program). An eager call does
+      that in its diagnostics program, with XLA's quick settings: it compiles beside
+      the solve and in less time, and runs slower than in the solve's program would.
     * ``progress``: a host callback in the loop, and a second compiled program.
 
-    A first eager call traces its programs (input checks, solve, diagnostics) one
-    after the other and compiles each in the background as soon as it is traced; the
-    checks run, and raise, before the solve runs. Its solve is compiled with XLA's
+    A first eager call traces its programs (input checks, solve, saved-state
+    projection and diagnostics) one after the other and compiles each in the
+    background as soon as it is traced; the checks run, and raise, before the solve
+    runs. Its solve is compiled with XLA's
     older loop emitters (``nhjax._programs.SOLVE_OPTIONS``: a shorter compile, the same
     run time); under ``jax.jit`` the solve is part of the caller's program and compiled
     with the caller's settings, so the last bits of its results may differ from an
@@ -757,9 +779,13 @@ def simulate(
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
     else:
-        # Eager call: the diagnostics are a second program, run on the solution.
+        # Eager call: the diagnostics (and a projected solve's saved states) are a second
+        # program, run on the solution.
         track = static.track_work
-        core = dataclasses.replace(static, diagnostics=False)
+        # the saved states' projection and the diagnostics: a second program (see _saved_eager)
+        project_saved = static.project_steps
+        second = project_saved or static.diagnostics
+        core = dataclasses.replace(static, diagnostics=False, project_saved=False)
         warm = None
         if early:
             # traced one after the other here (tracing holds the GIL), each compiled in
@@ -770,24 +796,29 @@ def simulate(
                                   (system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0,
                                    core, show), error_mode="off",
                                   compiler_options=_programs.SOLVE_OPTIONS)
-            if static.diagnostics:
-                _programs.prepare("diagnose", _diagnose_eager, _diagnose_placeholders(system, control, x0, t0a, ts,
-                                                                                        track),
+            if second:
+                _programs.prepare("diagnose", _saved_eager,
+                                  _diagnose_placeholders(system, control, x0, t0a, ts, track, project_saved,
+                                                         static.diagnostics),
                                   error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
             x0, _ = _finish_checks(report_args, system, x0, t0, constraint_tol, project)
-        elif static.diagnostics:  # compiled in a thread while the solve compiles
-            warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track)
+        elif second:  # compiled in a thread while the solve compiles
+            warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track, project_saved,
+                                       static.diagnostics)
         traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
                              show)
-        if static.diagnostics:
+        if second:
             if warm is not None:
                 warm.result()
-            invariants, drift, cons, us = _programs.call(
-                "diagnose", _diagnose_eager,
-                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track), error_mode="off",
-                compiler_options=_programs.QUICK_OPTIONS)
-            traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
-                                       constraint_drift=cons, us=us)
+            xs, diag = _programs.call(
+                "diagnose", _saved_eager,
+                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track, project_saved,
+                 static.diagnostics), error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
+            traj = dataclasses.replace(traj, xs=xs)
+            if static.diagnostics:
+                invariants, drift, cons, us = diag
+                traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
+                                           constraint_drift=cons, us=us)
     if traced:
         return _runtime_checks(traj, static, on_guard)
     return _eager_checks(traj, system, control, static, on_guard)
