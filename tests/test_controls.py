@@ -193,13 +193,13 @@ class Pendulum(AbstractSystem):
 
 
 def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
-    """solve_pontryagin's extremal, cost and residual (single shooting) come from the root
-    find's last accepted solve: its trajectory starts at the returned p0, the residual
+    """solve_pontryagin's extremal, cost and residual (single shooting) belong to the
+    returned solution: the trajectory starts at the returned p0, the residual
     recomputed from its end with the returned nu is the reported one, and the cost is
     the running cost's quadrature along it. Checked for Newton, and for
     Levenberg-Marquardt from a far guess stopped after every budget of 1-10 steps (its
-    trials are rejected from the 2nd to the 9th: the run must return the last accepted
-    point's extremal, not the trial's), and from a nearer one to convergence."""
+    trials are rejected from the 2nd to the 9th: the answer is the last accepted point,
+    not the trial), and from a nearer one to convergence."""
     from controls.pontryagin import _terminal_residual
 
     # swing a pendulum from rest at the bottom to rest at q = 2 in T = 3 (nonlinear)
@@ -236,14 +236,14 @@ def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
     c, s = np.cos(0.3), np.sin(0.3)
     prob = _Arctan(jnp.array([0.4, -1.3]), jnp.array([[c, -s], [s, c]]))
     for damped in (False, True):
-        z, r, steps, _ = _shooting_root(prob, jnp.array([0.9, -1.0]), 1e-13, 50, damped)
+        z, r, steps = _shooting_root(prob, jnp.array([0.9, -1.0]), 1e-13, 50, damped)
         np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
         assert np.max(np.abs(np.asarray(r))) <= 1e-12 and 1 <= int(steps) <= 30
     # a start where the undamped iteration does not converge within the budget
     far = jnp.array([0.4, -1.3]) + prob.mix.T @ jnp.array([8.0, -8.0])
-    z, r, steps, _ = _shooting_root(prob, far, 1e-13, 100, True)
+    z, r, steps = _shooting_root(prob, far, 1e-13, 100, True)
     np.testing.assert_allclose(np.asarray(z), [0.4, -1.3], atol=1e-12)
-    zn, rn, _, _ = _shooting_root(prob, far, 1e-13, 100, False)
+    zn, rn, _ = _shooting_root(prob, far, 1e-13, 100, False)
     assert not (np.max(np.abs(np.asarray(rn))) <= 1e-12)
 
 
