@@ -106,7 +106,7 @@ class ConstrainedLagrangian(AbstractSystem):
 
     def mass_matrix(self, q):
         """M(q) = d^2 T / dq'^2 (T is quadratic in q', so any q' gives the same M)."""
-        return jax.jacfwd(self.momentum, argnums=1)(q, jnp.zeros_like(q))
+        return _mass_matrix(self, q)
 
     def _all_velocity_constraints(self, t, q, qd):
         c = self.velocity_constraints(t, q, qd)
@@ -119,9 +119,7 @@ class ConstrainedLagrangian(AbstractSystem):
 
     def constraint_jacobian(self, t, q):
         """A_all(t, q): Jacobian of all velocity-level constraints w.r.t. q'."""
-        return jax.jacfwd(lambda v: self._all_velocity_constraints(t, q, v))(
-            jnp.zeros_like(q)
-        )
+        return _constraint_jacobian(self, jnp.asarray(t, q.dtype), q)
 
     def dynamics_terms(self, t, q, qd, u):
         """(M, rhs, A, b): the pieces of the KKT system at (t, q, q')."""
@@ -274,6 +272,21 @@ class ConstrainedLagrangian(AbstractSystem):
             M = self.mass_matrix(q)
             qd = qd.at[free_v].add(metric_projection(M[np.ix_(free_v, free_v)], A[:, free_v], r))
         return jnp.concatenate([q, qd])
+
+
+# M and A as nested jits: a first simulate() needs them in the vector field, in the
+# input checks' regularity margins and in the projection onto the constraints (each
+# traced in a program of its own or in a loop of its own); a nested jit traces each
+# once per system structure and coordinate shape and reuses that jaxpr at the other
+# places. XLA inlines the calls.
+@eqx.filter_jit
+def _mass_matrix(system, q):
+    return jax.jacfwd(system.momentum, argnums=1)(q, jnp.zeros_like(q))
+
+
+@eqx.filter_jit
+def _constraint_jacobian(system, t, q):
+    return jax.jacfwd(lambda v: system._all_velocity_constraints(t, q, v))(jnp.zeros_like(q))
 
 
 def _state_names(owner, names, n):
