@@ -724,14 +724,14 @@ def simulate(
       the solve and in less time, and runs slower than in the solve's program would.
     * ``progress``: a host callback in the loop, and a second compiled program.
 
-    A first eager call traces its programs (input checks, solve, saved-state
-    projection and diagnostics) one after the other and compiles each in the
+    A first eager call traces its programs (input checks, solve, diagnostics with
+    the saved states' projection) one after the other and compiles each in the
     background as soon as it is traced; the checks run, and raise, before the solve
-    runs. Its solve is compiled with XLA's
-    older loop emitters (``nhjax._programs.SOLVE_OPTIONS``: a shorter compile, the same
-    run time); under ``jax.jit`` the solve is part of the caller's program and compiled
-    with the caller's settings, so the last bits of its results may differ from an
-    eager call's.
+    runs. Its solve is compiled with XLA's older loop emitters
+    (``nhjax._programs.SOLVE_OPTIONS``: a shorter compile, the same run time); under
+    ``jax.jit`` the solve is part of the caller's program and compiled with the
+    caller's settings, so the last bits of its results may differ from an eager
+    call's.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
     if not isinstance(system, AbstractSystem):
@@ -779,10 +779,9 @@ def simulate(
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
     else:
-        # Eager call: the diagnostics (and a projected solve's saved states) are a second
-        # program, run on the solution.
+        # Eager call: the diagnostics, and a projected solve's projection of its saved
+        # states, are a second program, run on the solution (_saved_eager).
         track = static.track_work
-        # the saved states' projection and the diagnostics: a second program (see _saved_eager)
         project_saved = static.project_steps
         second = project_saved or static.diagnostics
         core = dataclasses.replace(static, diagnostics=False, project_saved=False)
