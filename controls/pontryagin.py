@@ -301,9 +301,6 @@ def _extremal_body(ham, p0, rtol, atol):
     return traj, us, cost
 
 
-_extremal = compiled(_extremal_body)
-
-
 @compiled
 def _indirect(sh, z0, tol, max_steps, damped: bool):
     """The whole indirect solve as one program: Newton or Levenberg–Marquardt

@@ -104,8 +104,9 @@ def compiled(fn=None, *, quick: bool = False):
     ``quick=True`` (as ``@compiled(quick=True)``): XLA's quick settings
     (``nhjax._programs.QUICK_OPTIONS``: a shorter compile, a slower run, and last
     bits that differ from a default compile's), for programs that run a few
-    times per call and whose compile the first answer waits for, such as the checks
-    of a solution (re-simulation, costate sweep)."""
+    times per call and whose compile the first answer waits for: the checks of a
+    solution (re-simulation, costate sweep) and one-off computations (a fit's basis,
+    the control cost's Hessian)."""
     if fn is None:
         return functools.partial(compiled, quick=quick)
     options = _programs.QUICK_OPTIONS if quick else None
