@@ -126,6 +126,61 @@ def test_a_projected_solve_saves_the_same_states_eager_and_under_jit():
     assert worst(raw.xs) > 1e-9  # (without projection the saved states drift off)
 
 
+class _WholeProjection(nhjax.scenes.ThreeCylinders):
+    """ThreeCylinders whose steps end with the whole projection: redefining ``project``
+    turns the split off (``splits_projection``)."""
+
+    def project(self, t, x, fixed=None):
+        return super().project(t, x, fixed)
+
+
+class _WholeProjectionCat(nhjax.scenes.FallingCatLagrangian):
+    def project(self, t, x, fixed=None):
+        return super().project(t, x, fixed)
+
+
+def test_the_split_projection_takes_the_steps_of_the_whole_one():
+    """A projected solve of a constrained Lagrangian projects the positions after each
+    step and the velocities with the next step's first stage (one evaluation of M and A
+    for both). The states it steps from are those of the whole projection after each
+    step: same steps, same saved and final states to round-off, eagerly, under jit and
+    with the work of an input tracked; the final state, whose velocities no next step
+    projects, is on the constraints. Without the velocity half the states part by the
+    integration error."""
+    split_sys, whole_sys = nhjax.scenes.ThreeCylinders(), _WholeProjection()
+    assert split_sys.splits_projection and not whole_sys.splits_projection
+    x0 = split_sys.initial_state()
+    split = nhjax.simulate(split_sys, x0, 6.0, saveat=31)
+    whole = nhjax.simulate(whole_sys, x0, 6.0, saveat=31)
+    assert int(split.num_accepted_steps) == int(whole.num_accepted_steps) > 20
+    assert int(split.num_rejected_steps) == int(whole.num_rejected_steps)
+    np.testing.assert_allclose(split.xs, whole.xs, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(split.x_end, whole.x_end, rtol=0, atol=1e-12)
+    assert float(split_sys.constraint_residual(split.t_final, split.x_end)) < 1e-13
+    jitted = jax.jit(lambda x: nhjax.simulate(split_sys, x, 6.0, saveat=31).x_end)(x0)
+    np.testing.assert_allclose(jitted, whole.x_end, rtol=0, atol=1e-12)
+
+    # positions only (the velocity half left out): the solve drifts off the whole one
+    class _PositionsOnly(nhjax.scenes.ThreeCylinders):
+        def projected_field(self, t, x, apply, control=None):
+            return super().projected_field(t, x, False, control)
+
+    drift = nhjax.simulate(_PositionsOnly(), x0, 6.0, saveat=31)
+    assert float(np.max(np.abs(np.asarray(drift.xs) - np.asarray(whole.xs)))) > 1e-10
+
+    # an input acting, its work tracked (the work rides in the state)
+    cat, whole_cat = nhjax.scenes.FallingCatLagrangian(), _WholeProjectionCat()
+    xc = jnp.array([1.0, 0.0, 0.0, 0.1, 0.3, 0.0])
+    xc = cat.project(0.0, xc)
+    u = nhjax.Sinusoids([0.0, 0.0], [0.3, 0.2], [2.0, 3.0], [0.0, np.pi / 2])
+    a = nhjax.simulate(cat, xc, 3.0, control=u, track_work=True, saveat=11)
+    b = nhjax.simulate(whole_cat, xc, 3.0, control=u, track_work=True, saveat=11)
+    assert int(a.num_accepted_steps) == int(b.num_accepted_steps)
+    np.testing.assert_allclose(a.xs, b.xs, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a.work, b.work, rtol=0, atol=1e-12)
+    assert float(np.max(np.abs(a.work))) > 1e-3
+
+
 def test_signals():
     pl = nhjax.PiecewiseLinear([0.0, 1.0, 3.0], [[0.0, 1.0], [2.0, 1.0], [2.0, -1.0]])
     np.testing.assert_allclose(pl(0.5), [1.0, 1.0])

@@ -227,7 +227,11 @@ def lockstep_solve(problem, y0, args, args_axes, *, n_members=None, skip=None, l
         term_b = LieODETerm(vmap_lanes(term.vector_field, (-1, -1, args_axes)), spaces_b)
         solver_b = solver
         if isinstance(solver, ProjectedSolver):
-            solver_b = ProjectedSolver(inner, vmap_lanes(solver.project, (-1, -1, args_axes)))
+            split = solver.entry is not None
+            solver_b = ProjectedSolver(
+                inner, vmap_lanes(solver.project, (-1, -1, args_axes)),
+                entry=vmap_lanes(solver.entry, (-1, -1, args_axes, None)) if split else None,
+                project_positions=vmap_lanes(solver.project_positions, (-1, -1, args_axes)) if split else None)
 
     dense_static = []  # the dense output's non-array part, recorded by take_step's first trace
 

@@ -28,6 +28,7 @@ Solvers:
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -64,6 +65,17 @@ class LieODETerm(AbstractTerm):
 
     def prod(self, vf, control):
         return jtu.tree_map(lambda v: control * v, vf)
+
+
+def _unwrapped(terms):
+    """The term inside diffeqsolve's ``WrapTerm`` (a ``term`` and a time ``direction``)."""
+    if hasattr(terms, "term") and hasattr(terms, "direction"):
+        return terms.term
+    return terms
+
+
+def _entry_in_direction(entry, direction, t, y, args, apply):
+    return entry(t * direction, y, args, apply)
 
 
 def _spaces_of(terms) -> Any:
@@ -177,7 +189,7 @@ _RK4 = _Tableau(
 )
 
 
-def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
+def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None, entry=None):
     """The stage loop as a lax.scan: the vector field is traced once instead of once
     per stage (much faster to compile for large vector fields). ``f0=None``: the first
     stage's vector field, f(t0, y0), is evaluated by the scan too (its first iteration,
@@ -187,7 +199,12 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
     scalar bool, with ``f0``): the scan runs from the first stage, which takes ``f0``
     unless ``redo`` -- then it evaluates f(t0, y0) there, behind a ``lax.cond`` -- so
     the first step of a solve needs no separate evaluation of the vector field
-    before the loop (one copy of it fewer in the program)."""
+    before the loop (one copy of it fewer in the program).
+
+    ``entry(t, y, args, apply) -> (y', f(t, y'))`` (with ``f0=None``): the vector field
+    that may first move its state (a projection, where ``apply``); the first stage
+    applies it, and the step then runs from y' instead of y0. Returns the stages' ks,
+    the last stage's f and sigma, and the step's start (y0, or y')."""
     tab = self.tableau
     n = len(tab.c)
     A = np.zeros((n, n))
@@ -203,13 +220,19 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
     if first == 1:  # the scan starts at stage 1: stage 0 is the given f0
         ks0 = jtu.tree_map(lambda K, k: K.at[0].set(k), ks0, f0)
 
+    if entry is not None and first != 0:
+        raise ValueError("a stage scan with an entry map evaluates its first stage itself (f0=None, redo=None)")
+
     def body(carry, i):
-        ks, _, _ = carry
+        ks, _, _, y_start = carry
         sigma_i = jtu.tree_map(lambda K: h * jnp.tensordot(A[i], K, axes=1), ks)
-        y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y0, sigma_i)
+        y_i = _map(lambda sp, y, s: sp.retract(y, s), spaces, y_start, sigma_i)
         if first == 0:  # stage 0 at y0 exactly (not y0 retracted by a zero sigma)
-            y_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), y0, y_i)
-        if redo is None:
+            y_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), y_start, y_i)
+        if entry is not None:  # the first stage moves the step's start
+            y_moved, f_i = entry(t0 + c[i] * h, y_i, args, i == 0)
+            y_start = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), y_moved, y_start)
+        elif redo is None:
             f_i = terms.vf(t0 + c[i] * h, y_i, args)
         else:
             f_i = jax.lax.cond((i == 0) & ~redo, lambda: given, lambda: terms.vf(t0 + c[i] * h, y_i, args))
@@ -217,11 +240,11 @@ def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None):
         if first == 0:  # k_1 = dexpinv_0(f0) = f0
             k_i = jtu.tree_map(lambda a, b: jnp.where(i == 0, a, b), f_i, k_i)
         ks = jtu.tree_map(lambda K, k: K.at[i].set(k), ks, k_i)
-        return (ks, f_i, sigma_i), None
+        return (ks, f_i, sigma_i, y_start), None
 
-    init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0))
-    (ks, f_last, sigma_last), _ = jax.lax.scan(body, init, jnp.arange(first, n))
-    return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last
+    init = (ks0, f0, jtu.tree_map(jnp.zeros_like, f0), y0)
+    (ks, f_last, sigma_last, y0), _ = jax.lax.scan(body, init, jnp.arange(first, n))
+    return [jtu.tree_map(lambda K, j=j: K[j], ks) for j in range(n)], f_last, sigma_last, y0
 
 
 class _AbstractRKMK(diffrax.AbstractSolver):
@@ -266,12 +289,30 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         # XLA inlines the call
         return _nested_step(self, terms, t0, t1, y0, args, solver_state, made_jump)
 
-    def _step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+    def can_enter(self, terms) -> bool:
+        """Whether ``step_with_entry`` applies: stages in a scan, on a ``LieODETerm``
+        (or diffeqsolve's wrapper of one, which only scales time by the direction)."""
+        return self.scan_stages and isinstance(_unwrapped(terms), LieODETerm)
+
+    def step_with_entry(self, terms, t0, t1, y0, args, solver_state, entry):
+        """A step that starts anew (as ``step`` with ``made_jump=True``) whose first
+        stage is ``entry(t0, y0, args, True) -> (y0', f(t0, y0'))``: the step runs from
+        y0' (e.g. y0 with its velocities projected, computed together with the vector
+        field there; see ``ProjectedSolver``). Needs ``can_enter(terms)``."""
+        return _nested_step(self, terms, t0, t1, y0, args, solver_state, True, entry)
+
+    def _step(self, terms, t0, t1, y0, args, solver_state, made_jump, entry=None):
         tab = self.tableau
         spaces = _spaces_of(terms)
         h = t1 - t0
         redo = None
-        if self._flagged():
+        if entry is not None:
+            if terms is not _unwrapped(terms):  # diffeqsolve's WrapTerm: t -> direction * t
+                entry = functools.partial(_entry_in_direction, entry, terms.direction)
+            if self._flagged():
+                solver_state = solver_state[1]
+            f0 = None
+        elif self._flagged():
             first, solver_state = solver_state
             # one flag for the whole step, also under jax.vmap (as diffrax's FSAL solvers:
             # a batched flag would turn the scan's lax.cond into a select that always
@@ -296,7 +337,7 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         else:
             f0 = terms.vf(t0, y0, args)
         if self.scan_stages:
-            ks, f_last, sigma_last = self._stages_scanned(terms, spaces, t0, h, y0, args, f0, redo)
+            ks, f_last, sigma_last, y0 = self._stages_scanned(terms, spaces, t0, h, y0, args, f0, redo, entry)
         else:
             ks = [f0]  # k_1 = dexpinv_0(f0) = f0
             f_last, sigma_last = f0, None
@@ -335,7 +376,7 @@ class _AbstractRKMK(diffrax.AbstractSolver):
                 lambda s, k0, k1: _cubic(s, h * k0, h * k1), sigma, ks[0], k_end
             )
         dense_info = dict(y0=y0, coeffs=coeffs, spaces=spaces)
-        if redo is not None:
+        if self._flagged():
             f1 = (jnp.zeros((), bool), f1)
         return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
 
@@ -372,7 +413,7 @@ class RKMK4(_AbstractRKMK):
 
 
 @eqx.filter_jit
-def _nested_step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
+def _nested_step(solver, terms, t0, t1, y0, args, solver_state, made_jump, entry=None):
     """``solver._step`` as a nested jit (see ``_AbstractRKMK.step``); Python values among
-    the arguments (e.g. a literal ``made_jump``) stay static."""
-    return solver._step(terms, t0, t1, y0, args, solver_state, made_jump)
+    the arguments (e.g. a literal ``made_jump``, the entry map) stay static."""
+    return solver._step(terms, t0, t1, y0, args, solver_state, made_jump, entry)

@@ -189,6 +189,40 @@ def _vector_field(static: _Static):
     return eqx.filter_jit(functools.partial(_vf_body, static))
 
 
+def _entry_body(static: _Static, t, y, args, apply):
+    """The vector field with the velocity projection of a split projected solve (see
+    ``ProjectedSolver``): (y', f(t, y')), y' = y with its velocities projected where
+    ``apply``; the work, when tracked, rides along."""
+    system, control = args
+    x = _state_part(y, static)
+    xp, dx, u = system.projected_field(t, x, apply, control)
+    if static.flat_work:
+        power = jnp.reshape(system.power(t, xp, u), (1,)).astype(dx.dtype)
+        return jnp.concatenate([xp, y[-1:]]), jnp.concatenate([dx, power])
+    if static.track_work:
+        return (xp, y[1]), (dx, system.power(t, xp, u))
+    return xp, dx
+
+
+@functools.lru_cache(maxsize=64)
+def _entry_field(static: _Static):
+    """``_entry_body`` as a nested jit (as ``_vector_field``)."""
+    return eqx.filter_jit(functools.partial(_entry_body, static))
+
+
+@functools.lru_cache(maxsize=64)
+def _split_vector_field(static: _Static):
+    """The vector field of a split projected solve: ``_entry_field`` without the
+    projection (``apply`` a traced False, so that the stage scan's call and this one
+    share one trace; XLA drops the projection here)."""
+    entry = _entry_field(static)
+
+    def vf(t, y, args):
+        return entry(t, y, args, jnp.zeros((), bool))[1]
+
+    return vf
+
+
 @eqx.filter_jit
 def _project_state(system, t, x):
     """``system.project(t, x)`` as a nested jit, for the same reason as ``_vector_field``:
@@ -196,6 +230,12 @@ def _project_state(system, t, x):
     saved states are projected too; a nested jit traces the projection once per system
     structure and state shape, and XLA inlines it as before."""
     return system.project(t, x)
+
+
+@eqx.filter_jit
+def _project_positions(system, t, x):
+    """``system.project_positions(t, x)`` as a nested jit (see ``_project_state``)."""
+    return system.project_positions(t, x)
 
 
 def _state_part(y, static: _Static):
@@ -246,8 +286,9 @@ def _diagnose_placeholders(system, control, x0, t0, ts, track, project, diagnost
     solution."""
     n = ts.shape[0]
     xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
+    x_end = jtu.tree_map(lambda a: jnp.zeros(jnp.shape(a), a.dtype), x0)
     work = jnp.zeros(n) if track else None
-    return system, control, x0, t0, ts, xs, jnp.asarray(t0), work, track, project, diagnostics
+    return system, control, x0, t0, ts, xs, jnp.asarray(t0), x_end, work, track, project, diagnostics
 
 
 def _warm_diagnostics(system, control, x0, t0, ts, track, project, diagnostics):
@@ -283,17 +324,25 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
         spaces = (spaces, Euclidean())
     else:
         y0 = x0
-    term = LieODETerm(_vector_field(static), spaces)
+    split = static.project_steps and system.splits_projection
+    term = LieODETerm(_split_vector_field(static) if split else _vector_field(static), spaces)
     if static.project_steps:
 
-        def project(t, y, args):
-            if static.flat_work:
-                return jnp.concatenate([_project_state(args[0], t, y[:-1]), y[-1:]])
-            if track:
-                return _project_state(args[0], t, y[0]), y[1]
-            return _project_state(args[0], t, y)
+        def on_state(fn):
+            def project(t, y, args):
+                if static.flat_work:
+                    return jnp.concatenate([fn(args[0], t, y[:-1]), y[-1:]])
+                if track:
+                    return fn(args[0], t, y[0]), y[1]
+                return fn(args[0], t, y)
 
-        solver = ProjectedSolver(solver, project)
+            return project
+
+        # split: positions after each step, velocities with the next step's first stage
+        # (ProjectedSolver; where the solver cannot take that, the whole projection)
+        solver = ProjectedSolver(solver, on_state(_project_state),
+                                 entry=_entry_field(static) if split else None,
+                                 project_positions=on_state(_project_positions) if split else None)
         # the saved states (dense output between steps) are projected too, after the
         # loop, all at once (_finish): one copy of the projection in the program, and
         # vectorized, instead of one in the save loop and one at an event
@@ -327,9 +376,11 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
     return problem, y0
 
 
-def _project_saved(system, x0, t0, ts_saved, xs):
-    """A projected solve's saved states (dense output between projected steps) onto the
-    constraints; rows never reached (t = inf) stay as they are."""
+def _project_saved(system, x0, t0, ts_saved, xs, t_end, x_end):
+    """A projected solve's saved states (dense output between projected steps) and its
+    final state ``x_end`` (at ``t_end``; a split projection leaves its velocities to the
+    step that would follow) onto the constraints; rows never reached (t = inf) stay as
+    they are. Returns (xs, x_end)."""
 
     def onto(t, x):
         reached = jnp.isfinite(t)
@@ -342,7 +393,10 @@ def _project_saved(system, x0, t0, ts_saved, xs):
     # LAPACK solves) is a second, larger program beside the step's own projection;
     # one row at a time XLA compiled 0.7-1.6 s less of it for the scenes with
     # constraints (BallInCone, ThreeCylinders), for ~0.7-1 ms more per solve
-    return jax.lax.map(lambda row: onto(*row), (ts_saved, xs))
+    rows = (jnp.concatenate([ts_saved, jnp.reshape(t_end, (1,)).astype(ts_saved.dtype)]),
+            jtu.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), xs, x_end))
+    out = jax.lax.map(lambda row: onto(*row), rows)
+    return jtu.tree_map(lambda a: a[:-1], out), jtu.tree_map(lambda a: a[-1], out)
 
 
 def _finish(system, control, x0, t0, sol, static: _Static):
@@ -355,7 +409,7 @@ def _finish(system, control, x0, t0, sol, static: _Static):
     else:
         xs, work = ys, None
     if static.project_steps and static.project_saved:
-        xs = _project_saved(system, x0, t0, ts_saved, xs)
+        xs, x_end = _project_saved(system, x0, t0, ts_saved, xs, t_final, x_end)
 
     invariants, drift, constraint_drift, us = {}, {}, {}, None
     if static.diagnostics:
@@ -440,17 +494,18 @@ def _solve_cached(*args):
                                      compiler_options=_programs.SOLVE_OPTIONS), static.state_names)
 
 
-def _saved_eager(system, control, x0, t0, ts, xs, t_final, work, track, project, diagnostics):
+def _saved_eager(system, control, x0, t0, ts, xs, t_final, x_end, work, track, project, diagnostics):
     """An eager call's second program, run on the solve's saved states: their
     projection (``project``: a projected solve) and the diagnostics, traced without
     equinox's runtime checks (eager calls: checked states), compiled with XLA's quick
-    settings. Returns (xs, diagnostics or None). The saved states' projection is a
+    settings. Returns (xs, x_end, diagnostics or None). The saved states' projection is a
     second copy of the step's: here it compiles beside the solve's program, and in
     less time, for a slower run of that loop over the saved states."""
     with _error_checks(False):
         if project:
-            xs = _project_saved(system, x0, t0, ts, xs)
-        return xs, (_diagnose(system, control, x0, t0, ts, xs, t_final, work, track) if diagnostics else None)
+            xs, x_end = _project_saved(system, x0, t0, ts, xs, t_final, x_end)
+        return xs, x_end, (_diagnose(system, control, x0, t0, ts, xs, t_final, work, track) if diagnostics
+                           else None)
 
 
 _ERROR_MODE_LOCK = threading.RLock()
@@ -688,8 +743,11 @@ def simulate(
         loop itself), or ``diffrax.ForwardMode()`` for jvp/jacfwd.
     project : project x0 onto the constraint manifold instead of rejecting it.
     project_steps : project the state onto the constraint manifold after every
-        step (``ProjectedSolver``), and the saved states too; removes the drift of
-        the index-reduced equations at the cost of a projection per step. Default:
+        step (``ProjectedSolver``), and the saved and final states too; removes the
+        drift of the index-reduced equations at the cost of a projection per step
+        (for a ``ConstrainedLagrangian``: positions after the step, velocities
+        with the next step's first stage, which has M and A there; see
+        ``splits_projection``). Default:
         on when the system has position (holonomic) or other non-velocity
         constraints (e.g. unit quaternions), off for purely nonholonomic ones.
     constraint_tol : largest constraint residual accepted in x0.
@@ -809,11 +867,11 @@ def simulate(
         if second:
             if warm is not None:
                 warm.result()
-            xs, diag = _programs.call(
+            xs, x_end, diag = _programs.call(
                 "diagnose", _saved_eager,
-                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.work, track, project_saved,
-                 static.diagnostics), error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
-            traj = dataclasses.replace(traj, xs=xs)
+                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.x_end, traj.work, track,
+                 project_saved, static.diagnostics), error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
+            traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
             if static.diagnostics:
                 invariants, drift, cons, us = diag
                 traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,

@@ -30,6 +30,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 
 from ._kkt import (
@@ -123,14 +124,18 @@ class ConstrainedLagrangian(AbstractSystem):
 
     def dynamics_terms(self, t, q, qd, u):
         """(M, rhs, A, b): the pieces of the KKT system at (t, q, q')."""
-        M = self.mass_matrix(q)
+        rhs, b = self._rhs_terms(t, q, qd, u)
+        return self.mass_matrix(q), rhs, self.constraint_jacobian(t, q), b
+
+    def _rhs_terms(self, t, q, qd, u):
+        """(rhs, b): the velocity-dependent parts of the KKT system (M and A depend on
+        (t, q) only)."""
         dLdq = jax.grad(self.lagrangian, argnums=0)(q, qd)
         # (d/dq dT/dq') q' by a forward-mode directional derivative
         dpdq_qd = jax.jvp(lambda qq: self.momentum(qq, qd), (q,), (qd,))[1]
         if u is None:
             u = jnp.zeros((self.control_dim,), q.dtype)
         rhs = dLdq - dpdq_qd + self.generalized_force(t, q, qd, u)
-        A = self.constraint_jacobian(t, q)
         # b = d/dt c at fixed q'' = 0: derivative of c along (t, q) -> (1, q')
         tt = jnp.asarray(t, q.dtype)
         b = jax.jvp(
@@ -144,7 +149,7 @@ class ConstrainedLagrangian(AbstractSystem):
             phi = self.position_constraints(t, q)
             pad = jnp.zeros(c.shape[0] - jnp.atleast_1d(phi).shape[0], q.dtype)
             b = b + 2 * alpha * c + beta**2 * jnp.concatenate([pad, jnp.atleast_1d(phi)])
-        return M, rhs, A, b
+        return rhs, b
 
     def accelerations(self, t, q, qd, u=None):
         """(q'', lam): accelerations and constraint multipliers (force A^T lam)."""
@@ -242,14 +247,61 @@ class ConstrainedLagrangian(AbstractSystem):
         q, qd = self.split(x)
         if fixed is not None:
             return self._project_fixed(t, q, qd, *self.fixed_components(fixed))
-        phi0 = jnp.atleast_1d(self.position_constraints(t, q))
-        if phi0.shape[0]:
-            q = newton_project(lambda qq: jnp.atleast_1d(self.position_constraints(t, qq)), q)
+        q = self._project_q(t, q)
         A = self.constraint_jacobian(t, q)
         if A.shape[0]:
             r = self._all_velocity_constraints(t, q, qd)
             qd = qd + metric_projection(self.mass_matrix(q), A, r)
         return jnp.concatenate([q, qd])
+
+    def _project_q(self, t, q):
+        phi0 = jnp.atleast_1d(self.position_constraints(t, q))
+        if phi0.shape[0]:
+            q = newton_project(lambda qq: jnp.atleast_1d(self.position_constraints(t, qq)), q)
+        return q
+
+    # ---------------------------------- the projection split for projected solves
+    @property
+    def splits_projection(self) -> bool:
+        """Whether a projected solve may split ``project`` in two: the positions after
+        each step (``project_positions``), the velocities at the next step's first
+        stage (``projected_field``), where the step evaluates M(q) and A(q) at the
+        projected positions anyway. True unless a subclass redefines the vector field,
+        the dynamics or the projection (then the solve projects with ``project``)."""
+        cls, base = type(self), ConstrainedLagrangian
+        return all(getattr(cls, k) is getattr(base, k)
+                   for k in ("vector_field", "project", "dynamics_terms", "accelerations", "_rhs_terms"))
+
+    def project_positions(self, t, x):
+        """``project``'s first half: the positions onto phi(t, q) = 0 (minimum-norm Newton),
+        the velocities as given."""
+        q, qd = self.split(x)
+        return jnp.concatenate([self._project_q(t, q), qd])
+
+    def projected_field(self, t, x, apply, control=None):
+        """``project``'s second half and the vector field, from one evaluation of M(q),
+        A(q) and one LU factorization of the KKT matrix: where ``apply`` (a bool),
+        x' = (q, q' + dv) with dv the kinetic-metric projection of q' onto the
+        velocity constraints (as ``project`` computes it), else x' = x; then the
+        vector field at x' with u = control(t, x') (None: no input).
+        Returns (x', vector field, u)."""
+        q, qd = self.split(x)
+        M, A = self.mass_matrix(q), self.constraint_jacobian(t, q)
+        n, m = M.shape[0], A.shape[0]
+        if m == 0:
+            K = M
+        else:
+            K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
+        lu = jax.scipy.linalg.lu_factor(K)
+        if m:
+            r = self._all_velocity_constraints(t, q, qd)
+            dv = jax.scipy.linalg.lu_solve(lu, jnp.concatenate([jnp.zeros(n, M.dtype), -r]))[:n]
+            qd = jnp.where(apply, qd + dv, qd)
+        xp = jnp.concatenate([q, qd])
+        u = None if control is None else control(t, xp)
+        rhs, b = self._rhs_terms(t, q, qd, u)
+        qdd = jax.scipy.linalg.lu_solve(lu, jnp.concatenate([rhs, -b]) if m else rhs)[:n]
+        return xp, jnp.concatenate([qd, qdd]), u
 
     def _project_fixed(self, t, q, qd, fixed_q, fixed_v):
         owner = type(self).__name__

@@ -83,6 +83,13 @@ class AbstractSystem(eqx.Module):
     def project(self, t, x):
         return x
 
+    @property
+    def splits_projection(self) -> bool:
+        """Whether a projected solve may project positions after each step
+        (``project_positions``) and velocities with the next step's first stage
+        (``projected_field``); see ``ConstrainedLagrangian.splits_projection``."""
+        return False
+
     def constraint_residual(self, t, x):
         """Largest |residual| over all ``constraints(t, x)`` (0 without constraints)."""
         vals = [jnp.max(jnp.abs(jnp.asarray(v))) for v in self.constraints(t, x).values() if jnp.size(v)]
