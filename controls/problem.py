@@ -101,6 +101,11 @@ def compiled(fn=None, *, quick: bool = False):
     most of a warm first answer. Under an outer trace, or when the arguments cannot be
     fingerprinted, it is the plain ``eqx.filter_jit``.
 
+    Otherwise XLA's settings for solves (``nhjax._programs.SOLVE_OPTIONS``: its
+    older loop emitters, which compile these programs in less time and run them as
+    fast; last bits may differ from a default compile, such as a user's own jit of
+    the same function).
+
     ``quick=True`` (as ``@compiled(quick=True)``): XLA's quick settings
     (``nhjax._programs.QUICK_OPTIONS``: a shorter compile, a slower run, and last
     bits that differ from a default compile's), for programs that run a few
@@ -109,7 +114,7 @@ def compiled(fn=None, *, quick: bool = False):
     the control cost's Hessian)."""
     if fn is None:
         return functools.partial(compiled, quick=quick)
-    options = _programs.QUICK_OPTIONS if quick else None
+    options = _programs.QUICK_OPTIONS if quick else _programs.SOLVE_OPTIONS
 
     @functools.wraps(fn)
     def counted(*args, **kwargs):  # runs only while tracing
