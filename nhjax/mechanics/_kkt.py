@@ -7,13 +7,20 @@ import jax
 import jax.numpy as jnp
 
 
+def kkt_matrix(M, A):
+    """[[M, A^T], [A, 0]] (M itself without constraints, A with no rows)."""
+    m = A.shape[0]
+    if m == 0:
+        return M
+    return jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
+
+
 def kkt_accelerations(M, rhs, A, b):
     """Solve [[M, A^T], [A, 0]] (v', -lam) = (rhs, -b); returns (v', lam)."""
     n, m = M.shape[0], A.shape[0]
     if m == 0:
         return jnp.linalg.solve(M, rhs), jnp.zeros((0,), M.dtype)
-    K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
-    sol = jnp.linalg.solve(K, jnp.concatenate([rhs, -b]))
+    sol = jnp.linalg.solve(kkt_matrix(M, A), jnp.concatenate([rhs, -b]))
     return sol[:n], -sol[n:]
 
 
@@ -24,9 +31,8 @@ def metric_projection(M, A, residual):
     needs M positive definite only on ker A (as for quaternion coordinates, whose
     kinetic metric is degenerate along p).
     """
-    n, m = M.shape[0], A.shape[0]
-    K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
-    return jnp.linalg.solve(K, jnp.concatenate([jnp.zeros(n, M.dtype), -residual]))[:n]
+    n = M.shape[0]
+    return jnp.linalg.solve(kkt_matrix(M, A), jnp.concatenate([jnp.zeros(n, M.dtype), -residual]))[:n]
 
 
 def regularity_margins(M, A):

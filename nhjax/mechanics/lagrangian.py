@@ -36,6 +36,7 @@ import numpy as np
 from ._kkt import (
     REGULARITY_HINTS,
     kkt_accelerations,
+    kkt_matrix,
     metric_projection,
     newton_project,
     regularity_margins,
@@ -288,11 +289,7 @@ class ConstrainedLagrangian(AbstractSystem):
         q, qd = self.split(x)
         M, A = self.mass_matrix(q), self.constraint_jacobian(t, q)
         n, m = M.shape[0], A.shape[0]
-        if m == 0:
-            K = M
-        else:
-            K = jnp.block([[M, A.T], [A, jnp.zeros((m, m), M.dtype)]])
-        lu = jax.scipy.linalg.lu_factor(K)
+        lu = jax.scipy.linalg.lu_factor(kkt_matrix(M, A))
         if m:
             r = self._all_velocity_constraints(t, q, qd)
             dv = jax.scipy.linalg.lu_solve(lu, jnp.concatenate([jnp.zeros(n, M.dtype), -r]))[:n]
