@@ -169,12 +169,7 @@ def _vf_body(static: _Static, t, y, args):
     system, control = args
     x = _state_part(y, static)
     u = None if control is None else control(t, x)
-    dx = system.vector_field(t, x, u)
-    if static.flat_work:
-        return jnp.concatenate([dx, jnp.reshape(system.power(t, x, u), (1,)).astype(dx.dtype)])
-    if static.track_work:
-        return dx, system.power(t, x, u)
-    return dx
+    return _rate(static, system, t, x, u, system.vector_field(t, x, u))
 
 
 @functools.lru_cache(maxsize=64)
@@ -196,12 +191,7 @@ def _entry_body(static: _Static, t, y, args, apply):
     system, control = args
     x = _state_part(y, static)
     xp, dx, u = system.projected_field(t, x, apply, control)
-    if static.flat_work:
-        power = jnp.reshape(system.power(t, xp, u), (1,)).astype(dx.dtype)
-        return jnp.concatenate([xp, y[-1:]]), jnp.concatenate([dx, power])
-    if static.track_work:
-        return (xp, y[1]), (dx, system.power(t, xp, u))
-    return xp, dx
+    return _replace_state(y, xp, static), _rate(static, system, t, xp, u, dx)
 
 
 @functools.lru_cache(maxsize=64)
@@ -243,6 +233,23 @@ def _state_part(y, static: _Static):
     if static.flat_work:
         return y[:-1]
     return y[0] if static.track_work else y
+
+
+def _replace_state(y, x, static: _Static):
+    """The solver's state ``y`` with its system state replaced by ``x`` (the work kept)."""
+    if static.flat_work:
+        return jnp.concatenate([x, y[-1:]])
+    return (x, y[1]) if static.track_work else x
+
+
+def _rate(static: _Static, system, t, x, u, dx):
+    """The solver's rate at the state x: dx, and the power of the input u where the
+    work is tracked."""
+    if static.flat_work:
+        return jnp.concatenate([dx, jnp.reshape(system.power(t, x, u), (1,)).astype(dx.dtype)])
+    if static.track_work:
+        return dx, system.power(t, x, u)
+    return dx
 
 
 def _with_work(y, static: _Static):
@@ -330,11 +337,7 @@ def _build_problem(system, control, x0, t0, t1, ts, solver, controller, dt0, sta
 
         def on_state(fn):
             def project(t, y, args):
-                if static.flat_work:
-                    return jnp.concatenate([fn(args[0], t, y[:-1]), y[-1:]])
-                if track:
-                    return fn(args[0], t, y[0]), y[1]
-                return fn(args[0], t, y)
+                return _replace_state(y, fn(args[0], t, _state_part(y, static)), static)
 
             return project
 
