@@ -78,6 +78,25 @@ def error_if(x, pred, msg):
     return eqx.error_if(x, pred, msg, on_error=getattr(_errors, "EQX_ON_ERROR", "raise"))
 
 
+def first_error_if(x, checks):
+    """``error_if`` for several ``(pred, msg)`` checks at once: one
+    ``equinox.branched_error_if`` that raises the message of the first check whose
+    ``pred`` holds (anywhere in it). One check instead of one per condition: equinox reads
+    the whole Python stack for every check it traces (for its error message), which
+    costs more tracing time than the check itself in a deep trace such as a solve inside
+    an optimizer's program."""
+    checks = list(checks)
+    if not checks:
+        return x
+    if len(checks) == 1:
+        return error_if(x, *checks[0])
+    from equinox import _errors
+
+    preds = jnp.stack([jnp.any(jnp.asarray(p)) for p, _ in checks])
+    return eqx.branched_error_if(x, jnp.any(preds), jnp.argmax(preds), [m for _, m in checks],
+                                 on_error=getattr(_errors, "EQX_ON_ERROR", "raise"))
+
+
 
 def _where(owner: str) -> str:
     return f"{owner}: " if owner else ""
@@ -698,14 +717,16 @@ def runtime_checks(x0, report, *, constraint_tol, project, owner="nhjax.simulate
     """The checks of ``raise_for_report`` as ``equinox.error_if`` runtime errors on x0
     (for traced values: inside jit, vmap or grad). Chart guards and regularity margins
     are left to the solve (its guard event and NaN checks)."""
-    x0 = error_if(x0, ~report["finite"], f"{owner}: initial state {name} contains NaN or inf; pass finite numbers")
-    x0 = error_if(x0, ~report["control_finite"],
-                      f"{owner}: control(t0, x0) returned NaN or inf; the control must be finite where the motion starts")
+    checks = [
+        (~report["finite"], f"{owner}: initial state {name} contains NaN or inf; pass finite numbers"),
+        (~report["control_finite"],
+         f"{owner}: control(t0, x0) returned NaN or inf; the control must be finite where the motion starts"),
+    ]
     for part in report["group"]:
         bad = ~(report["group"][part] <= constraint_tol) | ~(report["group_det"][part] > 0)
-        x0 = error_if(
-            x0, bad, f"{owner}: {part} is not on its group (rotation error beyond constraint_tol, or det <= 0)"
-            + ("" if project else "; pass project=True to simulate() to replace it by the nearest group element"))
+        checks.append((bad, f"{owner}: {part} is not on its group (rotation error beyond constraint_tol, or det <= 0)"
+                       + ("" if project else "; pass project=True to simulate() to replace it by the nearest group "
+                          "element")))
     for cname, res in report["constraints"].items():
         if project:
             msg = (f"{owner}: projecting the initial state did not converge: constraint '{cname}' still "
@@ -713,8 +734,8 @@ def runtime_checks(x0, report, *, constraint_tol, project, owner="nhjax.simulate
         else:
             msg = (f"{owner}: initial state violates constraint '{cname}' beyond constraint_tol. Pass "
                    "project=True to simulate() to project it onto the constraint manifold, or fix the initial state")
-        x0 = error_if(x0, ~(res <= constraint_tol), msg)
-    return x0
+        checks.append((~(res <= constraint_tol), msg))
+    return first_error_if(x0, checks)
 
 
 def member_failures(report, *, constraint_tol, project=False, n=None):
@@ -752,9 +773,10 @@ def member_failures(report, *, constraint_tol, project=False, n=None):
 
 
 # ------------------------------------------------------------------ times
-def time_span(t0, t1, *, owner="simulate"):
+def time_span(t0, t1, *, owner="simulate", runtime=True):
     """t0 and t1 finite real scalars with t1 > t0 (concrete values); traced values
-    get the same words as a runtime error. Returns (t0, t1)."""
+    get the same words as a runtime error (``runtime=False``: not here; the caller joins
+    ``time_span_check`` to its own runtime checks). Returns (t0, t1)."""
     for nm, t in (("t0", t0), ("t1", t1)):
         if isinstance(t, jax.core.Tracer):
             continue
@@ -776,9 +798,16 @@ def time_span(t0, t1, *, owner="simulate"):
                 f"{_where(owner)}t1 = {float(t1)} must be greater than t0 = {float(t0)} ({kind}); nhjax "
                 "integrates forward in time: pass t1 > t0")
         return t0, t1
-    t1 = error_if(jnp.asarray(t1, float), ~(jnp.asarray(t1, float) > jnp.asarray(t0, float)),
-                      f"{_where(owner)}t1 must be greater than t0 (an empty or reversed time span); pass t1 > t0")
+    if runtime:
+        t1 = error_if(jnp.asarray(t1, float), *time_span_check(t0, t1, owner=owner))
     return t0, t1
+
+
+def time_span_check(t0, t1, *, owner="simulate"):
+    """(pred, msg): the runtime check of a traced time span (pred: t1 <= t0), for
+    ``first_error_if``."""
+    return (~(jnp.asarray(t1, float) > jnp.asarray(t0, float)),
+            f"{_where(owner)}t1 must be greater than t0 (an empty or reversed time span); pass t1 > t0")
 
 
 def save_times_count(saveat) -> int:

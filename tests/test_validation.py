@@ -163,6 +163,15 @@ def test_traced_checks_are_runtime_errors_with_the_same_words():
     run = jax.jit(lambda x: nhjax.simulate(cat, x, 1.0, saveat=2).xs)
     with pytest.raises(Exception, match="initial state x0 contains NaN or inf"):
         jax.block_until_ready(run(x0.at[1].set(jnp.nan)))
+    # the checks of x0 are one runtime check (first_error_if): each condition still
+    # raises its own words, and the first failing one is the one reported
+    ctl = jax.jit(lambda x, a: nhjax.simulate(cat, x, 1.0, saveat=2, control=nhjax.Sinusoids(
+        jnp.stack([a, 0.0]), jnp.zeros(2), jnp.ones(2), jnp.zeros(2))).xs)
+    assert np.all(np.isfinite(np.asarray(ctl(x0, 0.01))))
+    with pytest.raises(Exception, match="control\\(t0, x0\\) returned NaN or inf"):
+        jax.block_until_ready(ctl(x0, jnp.nan))
+    with pytest.raises(Exception, match="initial state x0 contains NaN or inf"):
+        jax.block_until_ready(ctl(x0.at[1].set(jnp.nan), jnp.nan))
     ball = BallOnPlatter()
     xb = ball.initial_state()
     check = jax.jit(lambda x: _check_inputs(ball, None, x, 0.0, 1e-8, False)[0])

@@ -37,17 +37,19 @@ import optimistix as optx
 
 from .. import _programs
 from .._validate import (
-    error_if,
     check_control,
     check_saveat,
     check_state,
     choice,
+    error_if,
+    first_error_if,
     member_report,
     raise_for_report,
     runtime_checks,
     simulate_memory,
     solver_settings,
     time_span,
+    time_span_check,
 )
 from ..errors import (
     ChartSingularityError,
@@ -800,7 +802,9 @@ def simulate(
             f"simulate: system must be an nhjax system (nhjax.mechanics.AbstractSystem, e.g. a scene or a "
             f"Lagrangian), got {type(system).__name__}", "system", system)
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol)
-    t0, t1 = time_span(t0, t1, owner="simulate")
+    # a traced time span is checked with the solve's result (one runtime check: see
+    # _runtime_checks)
+    t0, t1 = time_span(t0, t1, owner="simulate", runtime=False)
     check_saveat(saveat, t0, t1, owner="simulate")
     # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
     traced = _is_traced(x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
@@ -880,7 +884,8 @@ def simulate(
                 traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
                                            constraint_drift=cons, us=us)
     if traced:
-        return _runtime_checks(traj, static, on_guard)
+        span = time_span_check(t0, t1, owner="simulate") if _is_traced(t0, t1) else None
+        return _runtime_checks(traj, static, on_guard, span)
     return _eager_checks(traj, system, control, static, on_guard)
 
 
@@ -955,18 +960,18 @@ def _check_structure(system, x0, t0):
 _GUARD_MSG = "nhjax.simulate: a chart guard crossed zero (the coordinates became singular)"
 
 
-def _runtime_checks(traj, static, on_guard):
+def _runtime_checks(traj, static, on_guard, span=None):
     """Checks for a traced simulate(): attached to the outputs users read (ts, xs, x_end)
-    so that jit cannot drop them."""
+    so that jit cannot drop them. ``span``: the time span's check (``time_span_check``)
+    when t0 or t1 is traced. One runtime check for all (``first_error_if``)."""
     ok = diffrax.RESULTS.successful
     ev = diffrax.RESULTS.event_occurred
     bad = (traj.result != ok) & (traj.result != ev)
-    out = (traj.ts, traj.xs, traj.x_end)
-    out = error_if(
-        out, bad, "nhjax.simulate: the solve failed (max_steps exhausted, or NaN/inf in the vector field)"
-    )
+    checks = [] if span is None else [span]
+    checks.append((bad, "nhjax.simulate: the solve failed (max_steps exhausted, or NaN/inf in the vector field)"))
     if on_guard == "raise" and static.guard_names:
-        out = error_if(out, traj.result == ev, _GUARD_MSG)
+        checks.append((traj.result == ev, _GUARD_MSG))
+    out = first_error_if((traj.ts, traj.xs, traj.x_end), checks)
     return eqx.tree_at(lambda t: (t.ts, t.xs, t.x_end), traj, out)
 
 
