@@ -301,7 +301,6 @@ def _extremal_body(ham, p0, rtol, atol):
     return traj, us, cost
 
 
-@compiled
 def _indirect(sh, z0, tol, max_steps, damped: bool):
     """The whole indirect solve as one program: Newton or Levenberg–Marquardt
     (``damped``) on the shooting residual (``_shooting_root``), then the extremal from
@@ -319,6 +318,12 @@ def _indirect(sh, z0, tol, max_steps, damped: bool):
         r = sh.residual(z)
     viol = jnp.max(jnp.abs(ocp.terminal(traj.xs[-1, :n])[1])) if m else jnp.zeros(())
     return z, jnp.max(jnp.abs(r)), steps, traj, us, cost, viol
+
+
+# the program with XLA's solve settings, and with its quick ones (``quick=True``): a
+# shorter compile and a slower run, for one solve whose compile the answer waits for
+_indirect_quick = compiled(quick=True)(_indirect)
+_indirect = compiled(_indirect)
 
 
 def _check_pontryagin(ocp, owner, solver, u_star):
@@ -339,7 +344,7 @@ def _root_options(tol, max_steps, solver):
 
 
 def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadratic", rtol: float = 1e-11,
-                       atol: float = 1e-11, tol: float = 1e-10, max_steps: int = 100) -> bool:
+                       atol: float = 1e-11, tol: float = 1e-10, max_steps: int = 100, quick: bool = False) -> bool:
     """Trace ``solve_pontryagin``'s program (single shooting, these options) for this
     problem's structure now and compile it in the background, for a caller that will
     call it later (e.g. after a direct solve that gives the costates to start from):
@@ -352,7 +357,8 @@ def prepare_pontryagin(ocp: OCP, *, solver: str = "newton", u_star: str = "quadr
     ham = HamiltonianSystem(ocp, u_star)
     sh = _Shooting(ham, host_array(rtol), host_array(atol), 1)
     n, m = ocp.x0.shape[0], ocp.n_constraints
-    return _indirect.prepare(sh, np.zeros(n + m), *_root_options(tol, max_steps, solver))
+    program = _indirect_quick if quick else _indirect
+    return program.prepare(sh, np.zeros(n + m), *_root_options(tol, max_steps, solver))
 
 
 def solve_pontryagin(
@@ -369,6 +375,7 @@ def solve_pontryagin(
     tol: float = 1e-10,
     max_steps: int = 100,
     progress: bool = True,
+    quick: bool = False,
 ) -> IndirectResult:
     """Indirect shooting for ``ocp`` from a costate guess (default zeros).
 
@@ -377,6 +384,11 @@ def solve_pontryagin(
     progress : a progress line (tqdm.auto) with the iterations, cost, violation and
         residual when the solve ends (the iteration runs inside one compiled program,
         which has no host callbacks so that JAX's persistent cache keeps it); False: none.
+    quick : compile the program with XLA's quick settings (``nhjax._programs.QUICK_OPTIONS``:
+        LLVM at its lowest optimization) instead of the solve settings: a shorter compile
+        and a slower run, for a solve that runs once from a close start and whose compile
+        the answer waits for (the polish of a direct optimum). Its last bits may differ
+        from the default program's. ``prepare_pontryagin`` takes the same flag.
 
     The root find, the extremal and its cost are one compiled program per problem
     structure; the problem's numbers (x0, T, targets) and the guesses are its
@@ -408,7 +420,8 @@ def solve_pontryagin(
     bar = Progress(progress, 1, f"Pontryagin ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     converged = False
     try:
-        z, res, steps, traj, us, cost, viol = _indirect(sh, z0, *_root_options(tol, max_steps, solver))
+        program = _indirect_quick if quick else _indirect
+        z, res, steps, traj, us, cost, viol = program(sh, z0, *_root_options(tol, max_steps, solver))
         z, res, viol = np.asarray(z), float(res), float(viol)
         if not (np.all(np.isfinite(z)) and np.isfinite(res)):
             # say what is wrong with the start, if anything; else the iteration diverged

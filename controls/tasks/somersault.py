@@ -226,17 +226,18 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     # every program the task needs is traced first (the problems of all starts share one
     # structure; only the fiber target differs), and each compiled, or loaded from the
     # program cache, in the background while the next is traced: the starting loops'
-    # fit, the direct method's, the check's re-simulation, the polish's, and last the
-    # costate sweep's, the quickest to compile (the last compile is the one the task
-    # waits for)
+    # fit, the direct method's, the polish's (the longest compile after the direct
+    # method's, so it starts early; with XLA's quick settings, as it runs once from a
+    # close start), the check's re-simulation, and last the costate sweep's, the quickest
+    # to compile (the last compile is the one the task waits for)
     shape = velocity_somersault_smooth(cat, theta0, turn, T)
     prepare_fit(param)
     if direct_kw.get("optimizer", "auto") in ("auto", "sqp") and direct_kw.get("shooting") in (None, "single"):
         prepare_direct_sqp(shape, param, rtol=rtol, atol=atol)
+    if polish:
+        prepare_pontryagin(shape, quick=True)
     signal = param.signal(np.zeros(param.size))
     prepare_saved_path(shape, signal, rtol=rtol, atol=atol, n_points=n_check)
-    if polish:
-        prepare_pontryagin(shape)
     prepare_pmp_residual(shape, signal)
     f0 = float(_fiber_coefficient(cat, np.asarray(theta0, float)))
     starts, best, best_ocp = [], None, None
@@ -263,7 +264,7 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     res = pmp_residual(best_ocp, best.control)
     stat = res["stationarity"]
     if polish:
-        ind = solve_pontryagin(best_ocp, res["ps"][-1], res["multipliers"],
+        ind = solve_pontryagin(best_ocp, res["ps"][-1], res["multipliers"], quick=True,
                                progress="Pontryagin polish" if progress else False)
         agree = abs(best.cost - ind.cost) / abs(ind.cost)
     return FreeWindingResult(best=best, ocp=best_ocp, winding=best_info["winding"],
