@@ -29,6 +29,7 @@ direct methods.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from typing import ClassVar
@@ -37,6 +38,7 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.tree_util as jtu
 import numpy as np
 
 import nhjax
@@ -189,11 +191,42 @@ class _Shooting(eqx.Module):
                                 (ends[:-1] - nodes[1:]).reshape(-1)])
 
 
-def _value_and_jacobian(z, shooting):
-    """The shooting residual and its Jacobian from one forward-mode pass: ``jacfwd``
-    runs the ODE solve once for the primal beside its batched tangents."""
-    jac, value = jax.jacfwd(lambda y: (shooting.residual(y),) * 2, has_aux=True)(z)
-    return value, jac
+#: Saved times of the extremal that solve_pontryagin returns.
+_EXTREMAL_POINTS = 401
+
+
+def _extremal(ham, p0, rtol, atol, adjoint=None):
+    """The extremal from (x0, p0) with its running cost integrated alongside: one solve
+    of (x, p, J) (``_CostOfExtremal``), saved at ``_EXTREMAL_POINTS`` times."""
+    ocp = ham.ocp
+    y0 = jnp.concatenate([ocp.x0, p0, jnp.zeros(1)])
+    return nhjax.simulate(_CostOfExtremal(ham), y0, ocp.T, rtol=rtol, atol=atol, saveat=_EXTREMAL_POINTS,
+                          track_work=False, diagnostics=False, **({} if adjoint is None else {"adjoint": adjoint}))
+
+
+@eqx.filter_jit
+def _residual_and_extremal(sh, z):
+    """Single shooting's residual at z and the extremal it comes from (``_extremal``
+    with the forward-mode adjoint): one solve for both. A nested jit: the root find's
+    ``jax.eval_shape`` of its outputs and its forward-mode pass share one trace."""
+    ocp = sh.ham.ocp
+    n = ocp.x0.shape[0]
+    tr = _extremal(sh.ham, z[:n], sh.rtol, sh.atol, diffrax.ForwardMode())
+    yT = tr.xs[-1]
+    return _terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:]), tr
+
+
+def _value_and_jacobian(z, evaluate):
+    """The residual r(z), its Jacobian and ``evaluate``'s other outputs at z
+    (``evaluate(z) = (r, aux)``) from one forward-mode pass: ``jacfwd`` runs the ODE
+    solve once for the primal beside its batched tangents."""
+
+    def f(y):
+        r, aux = evaluate(y)
+        return r, (r, aux)
+
+    jac, (value, aux) = jax.jacfwd(f, has_aux=True)(z)
+    return value, jac, aux
 
 
 #: Levenberg–Marquardt's first damping, relative to diag(J^T J): nearly Gauss-Newton.
@@ -204,10 +237,13 @@ def _value_and_jacobian(z, shooting):
 _LM_MU0 = 1e-12
 
 
-def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
+def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = False):
     """Newton's method (``damped=False``) or Levenberg–Marquardt on the shooting
-    residual r(z) (``shooting.residual``, with ``shooting.residual_size`` entries): z and
-    r(z), and the number of steps taken.
+    residual r(z) (``shooting.residual``, with ``shooting.residual_size`` entries): z,
+    r(z), the number of steps taken, and with ``extremal`` (single shooting) the
+    extremal of z (else ``()``): then the loop's solve is ``_residual_and_extremal``'s,
+    which also integrates the running cost and saves the extremal, and the loop keeps
+    the one of its last accepted point, so that the answer needs no solve of its own.
 
     Each iteration evaluates r and its Jacobian once, at the point it tries, in one
     forward-mode pass (``_value_and_jacobian``): the compiled loop holds one copy of
@@ -231,6 +267,12 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
     """
     z0 = jnp.asarray(z0, float)
     n = z0.shape[0]
+    if extremal:
+        evaluate = functools.partial(_residual_and_extremal, shooting)
+        # (the outputs' shapes: a trace that the loop's call of the nested jit reuses)
+        aux0 = jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(evaluate, z0)[1])
+    else:
+        evaluate, aux0 = (lambda y: (shooting.residual(y), ())), ()
 
     def proposal(r, jac, mu):
         """The step and the decrease of 0.5 |r|^2 that the linearization predicts for it."""
@@ -242,17 +284,18 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
         return dz, 0.5 * dz @ (mu * scale * dz - g)
 
     def body(c):
-        k, z, r, jac, mu, nu, _, _ = c
+        k, z, r, jac, aux, mu, nu, _, _ = c
         first = k == 0
         dz, predicted = proposal(r, jac, mu)
         dz = jnp.where(first, 0.0, dz)
         z_try = jnp.where(first, z0, z + dz)
-        r_try, jac_try = _value_and_jacobian(z_try, shooting)
+        r_try, jac_try, aux_try = _value_and_jacobian(z_try, evaluate)
         ok = jnp.all(jnp.isfinite(r_try)) & jnp.all(jnp.isfinite(jac_try))
         gain = 0.5 * (r @ r - r_try @ r_try) / predicted  # actual over predicted decrease
         accept = first | (ok & ((gain > 0) | (not damped)))
         r_prev = r
         z, r, jac = (jnp.where(accept, a, b) for a, b in ((z_try, z), (r_try, r), (jac_try, jac)))
+        aux = jtu.tree_map(lambda a, b: jnp.where(accept, a, b), aux_try, aux)
         # Nielsen's damping update (Madsen, Nielsen & Tingleff, Methods for non-linear
         # least squares problems, 2004, eq. (2.21))
         mu = jnp.where(first, mu, jnp.where(accept, mu * jnp.maximum(1 / 3, 1 - (2 * gain - 1) ** 3), mu * nu))
@@ -267,7 +310,7 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
         # Newton stops at a non-finite trial (keeping the last finite point); the damped
         # iteration rejects it and shortens the step; both stop at a non-finite start
         going = (ok | damped) & jnp.all(jnp.isfinite(r))
-        return k + 1, z, r, jac, mu, nu, small, going
+        return k + 1, z, r, jac, aux, mu, nu, small, going
 
     def cond(c):
         k, *_, small, going = c
@@ -275,10 +318,10 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool):
 
     m = shooting.residual_size  # (not by eval_shape: that would trace the shooting's solves once more)
     # (r, J) before the first evaluation: any finite values (its step is masked out)
-    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.asarray(_LM_MU0), jnp.asarray(2.0),
+    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), aux0, jnp.asarray(_LM_MU0), jnp.asarray(2.0),
              jnp.zeros((), bool), jnp.ones((), bool))
-    k, z, r, *_ = jax.lax.while_loop(cond, body, start)
-    return z, r, k - 1
+    k, z, r, _, aux, *_ = jax.lax.while_loop(cond, body, start)
+    return z, r, k - 1, aux
 
 
 @compiled
@@ -286,13 +329,11 @@ def _residual_max(shooting, z):
     return jnp.max(jnp.abs(shooting.residual(z)))
 
 
-def _extremal_body(ham, p0, rtol, atol):
-    """The extremal from p0 with its running cost integrated alongside (one solve):
-    saved (x, p), the controls, and the total cost."""
+def _extremal_outputs(ham, tr):
+    """From an ``_extremal`` solve: the trajectory of (x, p), the controls at its saved
+    times, and the total cost."""
     ocp = ham.ocp
     n = ocp.x0.shape[0]
-    tr = nhjax.simulate(_CostOfExtremal(ham), jnp.concatenate([ocp.x0, p0, jnp.zeros(1)]), ocp.T,
-                        rtol=rtol, atol=atol, saveat=401, track_work=False, diagnostics=False)
     traj = eqx.tree_at(lambda t: (t.xs, t.x_end), tr, (tr.xs[:, : 2 * n], tr.x_end[: 2 * n]))
     xs, ps = traj.xs[:, :n], traj.xs[:, n:]
     us = jax.vmap(ham.u_star)(traj.ts, xs, ps)
@@ -301,29 +342,48 @@ def _extremal_body(ham, p0, rtol, atol):
     return traj, us, cost
 
 
-def _indirect(sh, z0, tol, max_steps, damped: bool):
+def _indirect_body(sh, z0, tol, max_steps, damped: bool, one_solve: bool):
     """The whole indirect solve as one program: Newton or Levenberg–Marquardt
-    (``damped``) on the shooting residual (``_shooting_root``), then the extremal from
-    the solution with its cost, the final residual (from the extremal's end for single
-    shooting) and the terminal constraints' violation max |psi(x(T))| there. ``tol`` and
-    ``max_steps`` are arrays: other values do not compile again."""
+    (``damped``) on the shooting residual (``_shooting_root``), the extremal of the
+    solution with its cost, the final residual and the terminal constraints' violation
+    max |psi(x(T))| at the extremal's end. ``tol`` and ``max_steps`` are arrays: other
+    values do not compile again.
+
+    ``one_solve`` (single shooting): the extremal is the root find's own last accepted
+    solve, which then integrates the running cost and saves the extremal at every
+    iteration (one ODE solve in the program: a shorter trace and compile, a longer run
+    per iteration). Otherwise a solve of its own after the root find (the residual of
+    single shooting from its end)."""
     ocp = sh.ham.ocp
     n, m = ocp.x0.shape[0], ocp.n_constraints
-    z, _, steps = _shooting_root(sh, z0, tol, max_steps, damped)
-    traj, us, cost = _extremal_body(sh.ham, z[:n], sh.rtol, sh.atol)
-    if sh.segments == 1:
-        yT = traj.xs[-1]
-        r = _terminal_residual(ocp, yT[:n], yT[n:], z[n:n + m])
-    else:
-        r = sh.residual(z)
+    single = sh.segments == 1
+    one = one_solve and single
+    z, r, steps, tr = _shooting_root(sh, z0, tol, max_steps, damped, extremal=one)
+    if not one:
+        tr = _extremal(sh.ham, z[:n], sh.rtol, sh.atol)
+        if single:
+            yT = tr.xs[-1]
+            r = _terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:n + m])
+        else:
+            r = sh.residual(z)
+    traj, us, cost = _extremal_outputs(sh.ham, tr)
     viol = jnp.max(jnp.abs(ocp.terminal(traj.xs[-1, :n])[1])) if m else jnp.zeros(())
     return z, jnp.max(jnp.abs(r)), steps, traj, us, cost, viol
 
 
-# the program with XLA's solve settings, and with its quick ones (``quick=True``): a
-# shorter compile and a slower run, for one solve whose compile the answer waits for
-_indirect_quick = compiled(quick=True)(_indirect)
-_indirect = compiled(_indirect)
+@compiled
+def _indirect(sh, z0, tol, max_steps, damped: bool):
+    """``_indirect_body`` with XLA's solve settings and a solve of its own for the extremal:
+    the program for solves that run many times (a fast run)."""
+    return _indirect_body(sh, z0, tol, max_steps, damped, one_solve=False)
+
+
+@compiled(quick=True)
+def _indirect_quick(sh, z0, tol, max_steps, damped: bool):
+    """``_indirect_body`` with XLA's quick settings and the extremal from the root find's
+    last solve (``solve_pontryagin(quick=True)``): the program for a solve that runs once
+    from a close start and whose compile the answer waits for (a short compile)."""
+    return _indirect_body(sh, z0, tol, max_steps, damped, one_solve=True)
 
 
 def _check_pontryagin(ocp, owner, solver, u_star):
@@ -384,11 +444,14 @@ def solve_pontryagin(
     progress : a progress line (tqdm.auto) with the iterations, cost, violation and
         residual when the solve ends (the iteration runs inside one compiled program,
         which has no host callbacks so that JAX's persistent cache keeps it); False: none.
-    quick : compile the program with XLA's quick settings (``nhjax._programs.QUICK_OPTIONS``:
-        LLVM at its lowest optimization) instead of the solve settings: a shorter compile
-        and a slower run, for a solve that runs once from a close start and whose compile
-        the answer waits for (the polish of a direct optimum). Its last bits may differ
-        from the default program's. ``prepare_pontryagin`` takes the same flag.
+    quick : a program made for a short compile rather than a fast run, for a solve that
+        runs once from a close start and whose compile the answer waits for (the polish
+        of a direct optimum): XLA's quick settings (``nhjax._programs.QUICK_OPTIONS``,
+        LLVM at its lowest optimization) instead of the solve settings, and for single
+        shooting one ODE solve in the program, the root find's, which then also
+        integrates the cost and saves the extremal at each iteration (instead of a solve
+        of the extremal after it). The same solution; last bits may differ from the
+        default program's. ``prepare_pontryagin`` takes the same flag.
 
     The root find, the extremal and its cost are one compiled program per problem
     structure; the problem's numbers (x0, T, targets) and the guesses are its
