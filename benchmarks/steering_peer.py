@@ -286,8 +286,9 @@ def goals(peer_text=""):
     sys.path.insert(0, str(HERE))
     from somersault_peer import goals_rows, print_goal_header
 
-    print("first answer (issue 16 goals: cold <= 30 s, warm <= 5 s), cold = fresh process + empty cache dir, "
-          "warm = second process; rel diff against the continuous optimum:", flush=True)
+    print("first answer (issue 16 goals: cold <= 30 s, warm <= 5 s), cold = fresh process + empty cache dir "
+          "(the faster of two; 'other': the other's solve time), warm = a process after one that filled the cache; "
+          "rel diff against the continuous optimum:", flush=True)
     print_goal_header(peer_text)
     return goals_rows(Path(__file__).resolve(), list(GOALS), GOALS, TASK_TEXT)
 
