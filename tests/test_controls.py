@@ -209,6 +209,7 @@ def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
                        terminal_constraints=Target(jnp.array([2.0, 0.0])))
     runs = [("newton", None, 100)] + [("lm", np.array([200.0, 100.0]), k) for k in range(1, 11)]
     runs += [("lm", np.array([40.0, -30.0]), 100)]
+    ref = None  # the default program's Newton solve (the first run)
     for quick, (solver, guess, budget) in [(q, run) for q in (False, True) for run in runs]:
         r = controls.solve_pontryagin(ocp, guess, solver=solver, max_steps=budget, progress=False, quick=quick)
         xs = np.asarray(r.trajectory.xs)
@@ -220,7 +221,8 @@ def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
         trap = np.trapezoid(0.5 * r.controls[:, 0] ** 2, np.asarray(r.trajectory.ts))
         assert abs(trap - r.cost) < 1e-4 * r.cost
         if solver == "newton":
-            ref = r if not quick else ref
+            if not quick:
+                ref = r
             assert r.converged and r.iterations >= 3
             # the quick program's Newton solve ends at the default one's extremal
             np.testing.assert_allclose(r.p0, ref.p0, rtol=1e-9)

@@ -108,19 +108,22 @@ def test_prepared_solver_programs_are_the_ones_the_solvers_call(tmp_path, monkey
     param = controls.PiecewiseLinear(4, ocp.T, 1)
     before = dict(TRACES)
     assert controls.pontryagin.prepare_pontryagin(ocp)
+    assert controls.pontryagin.prepare_pontryagin(ocp, quick=True)
     assert controls.pontryagin.prepare_pmp_residual(ocp, param.signal(np.zeros(param.size)))
     prepared = dict(TRACES)
-    assert prepared.get("_indirect", 0) == before.get("_indirect", 0) + 1
-    assert prepared.get("_costate_sweep", 0) == before.get("_costate_sweep", 0) + 1
+    for name in ("_indirect", "_indirect_quick", "_costate_sweep"):
+        assert prepared.get(name, 0) == before.get(name, 0) + 1, name
     ind = controls.solve_pontryagin(ocp, progress=False)
+    quick = controls.solve_pontryagin(ocp, progress=False, quick=True)
     d = controls.solve_direct(ocp, param, jnp.zeros(param.size), progress=False)
     res = controls.pmp_residual(ocp, d.control)
     after = dict(TRACES)
-    for name in ("_indirect", "_costate_sweep"):
+    for name in ("_indirect", "_indirect_quick", "_costate_sweep"):
         assert after[name] == prepared[name], (name, prepared, after)
     want = exact_cost(*case)
-    assert ind.converged
+    assert ind.converged and quick.converged
     np.testing.assert_allclose(ind.cost, want, rtol=1e-10)
+    np.testing.assert_allclose(quick.cost, want, rtol=1e-10)
     assert res["stationarity"] < 1e-4
     np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
 
