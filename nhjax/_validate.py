@@ -714,9 +714,10 @@ def _group_parts_names(spaces, name):
 
 
 def runtime_checks(x0, report, *, constraint_tol, project, owner="nhjax.simulate", name="x0"):
-    """The checks of ``raise_for_report`` as ``equinox.error_if`` runtime errors on x0
-    (for traced values: inside jit, vmap or grad). Chart guards and regularity margins
-    are left to the solve (its guard event and NaN checks)."""
+    """The checks of ``raise_for_report`` as one runtime check on x0 (``first_error_if``:
+    the words of the first failing condition; for traced values: inside jit, vmap or
+    grad). Chart guards and regularity margins are left to the solve (its guard event
+    and NaN checks)."""
     checks = [
         (~report["finite"], f"{owner}: initial state {name} contains NaN or inf; pass finite numbers"),
         (~report["control_finite"],
