@@ -52,6 +52,13 @@ def test_initial_states_are_consistent_and_the_same_body(rng):
     # the two free rates are the ones given; the lower cylinders' rates follow
     s = starts[0]
     assert float(ys[0][8]) == pytest.approx(s["theta_dot"]) and float(ys[0][9]) == pytest.approx(s["phi_dot"])
+    # concrete numbers run as one cached program; traced ones (vmap over the starts) as
+    # plain operations: the same states
+    keys = list(starts[0])
+    cols = {k: jnp.asarray([st[k] for st in starts]) for k in keys}
+    for model, eager in ((up, xs), (mn, ys)):
+        traced = jax.vmap(lambda *v, m=model: m.initial_state(**dict(zip(keys, v))))(*(cols[k] for k in keys))
+        np.testing.assert_allclose(np.asarray(traced), np.asarray(eager), rtol=0, atol=1e-14)
 
 
 @eqx.filter_jit

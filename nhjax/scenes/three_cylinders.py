@@ -89,6 +89,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
+from .._validate import is_traced
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
@@ -180,21 +182,36 @@ class _Common(ConstrainedLagrangian):
             rhs.append(-(self.r2 * phi_dot + s * theta_dot) * e_n)
         return jnp.linalg.solve(jnp.concatenate(rows), jnp.concatenate(rhs))
 
-    def _minimal_initial(self, owner, x1, x2, theta, phi, psi1, psi2, theta_dot, phi_dot):
+    def _initial_state(self, owner, x1, x2, theta, phi, psi1, psi2, theta_dot, phi_dot):
+        """The consistent state (``_state_of``) of the configuration y and the free rates
+        theta', phi' (see ``ThreeCylindersMinimal.initial_state``), after the numbers'
+        checks. Concrete numbers: one compiled program from nhjax's program cache (the
+        state as separate eager operations compiled some 60 small programs in every new
+        process, more than the first simulate() itself on a warm cache)."""
         vals = [real(k, v, owner=owner, as_float=True) for k, v in (
             ("x1", x1), ("x2", x2), ("theta", theta), ("phi", phi), ("psi1", psi1), ("psi2", psi2),
             ("theta_dot", theta_dot), ("phi_dot", phi_dot))]
-        y = jnp.stack([jnp.asarray(v, float) for v in vals[:6]])
-        th = y[2]
-        margin = jnp.minimum(jnp.abs(jnp.sin(th)), jnp.abs(jnp.sin(th - self.a)))
-        if not isinstance(margin, jax.core.Tracer) and not bool(margin > self.chart_eps):
+        if any(isinstance(v, jax.core.Tracer) for v in vals) or is_traced(self):
+            return _initial_from_numbers(self, jnp.stack([jnp.asarray(v, float) for v in vals]))
+        th, a = float(vals[2]), float(self.a)
+        margin = min(abs(np.sin(th)), abs(np.sin(th - a)))
+        if not margin > self.chart_eps:
             raise ParameterError(
-                f"{owner}: theta = {float(th)!r} puts the upper axis parallel to a lower axis "
-                f"(|sin(theta)| or |sin(theta - a)| = {float(margin):.3g} <= chart_eps = {self.chart_eps:g}); "
-                f"pick theta away from 0 and from a = {float(self.a):.6g} (mod pi)", "theta", theta)
-        v = self._rates(y, vals[6], vals[7])
-        yd = jnp.stack([v[0], v[1], jnp.asarray(vals[6], float), jnp.asarray(vals[7], float), v[2], v[3]])
-        return y, yd
+                f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
+                f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
+                f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
+        numbers = jnp.asarray(np.asarray(vals, float), float)  # from numpy: no program of its own
+        return _programs.call(f"{type(self).__name__}.initial_state", _initial_from_numbers, (self, numbers),
+                              compiler_options=_programs.QUICK_OPTIONS)
+
+
+def _initial_from_numbers(system, vals):
+    """``_Common._initial_state``'s computation on the 8 numbers (y, theta', phi'): the
+    rates x1', x2', psi1', psi2' from the no-slip conditions, then the system's state."""
+    y = vals[:6]
+    v = system._rates(y, vals[6], vals[7])
+    yd = jnp.stack([v[0], v[1], vals[6], vals[7], v[2], v[3]])
+    return system._state_of(y, yd)
 
 
 class ThreeCylindersMinimal(_Common):
@@ -244,8 +261,10 @@ class ThreeCylindersMinimal(_Common):
         and spin angle phi [rad], lower rolling angles psi1, psi2 [rad]; lower axis i at signed
         distance r1 psi_i from the origin along n_i) and the two free rates theta', phi' [rad/s];
         x1', x2', psi1', psi2' follow from the four no-slip conditions (9.31)."""
-        y, yd = self._minimal_initial("ThreeCylindersMinimal.initial_state", x1, x2, theta, phi, psi1, psi2,
-                                      theta_dot, phi_dot)
+        return self._initial_state("ThreeCylindersMinimal.initial_state", x1, x2, theta, phi, psi1, psi2,
+                                   theta_dot, phi_dot)
+
+    def _state_of(self, y, yd):
         return jnp.concatenate([y, yd])
 
 
@@ -390,6 +409,8 @@ class ThreeCylinders(_Common):
         """Consistent (u, p) state of the configuration y = (x1, x2, theta, phi, psi1, psi2) with
         the free rates theta', phi' (see ``ThreeCylindersMinimal.initial_state``): the same
         physical state as the minimal model's, built by ``from_minimal``."""
-        y, yd = self._minimal_initial("ThreeCylinders.initial_state", x1, x2, theta, phi, psi1, psi2,
-                                      theta_dot, phi_dot)
+        return self._initial_state("ThreeCylinders.initial_state", x1, x2, theta, phi, psi1, psi2, theta_dot,
+                                   phi_dot)
+
+    def _state_of(self, y, yd):
         return self.from_minimal(y, yd)
