@@ -55,6 +55,7 @@ from typing import Any, Callable
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
@@ -470,6 +471,20 @@ def compiled(name: str, fn: Callable, args: tuple, compiler_options: dict | None
         return jtu.tree_unflatten(out_def, exe(*_inputs(jtu.tree_leaves(a))))
 
     return run
+
+
+def small_call(name: str, fn: Callable, system, *numbers):
+    """``fn(system, *numbers)`` for a small one-off computation on concrete numbers (a
+    scene's state from its coordinates, a change of coordinates): one program from the
+    program cache, compiled with ``QUICK_OPTIONS``, instead of eager operations, each of
+    which compiles a small program of its own in every new process. ``numbers``: jax
+    arrays, or numbers and numpy arrays (handed over as float64 arrays without a program
+    of their own). With a traced argument (under jit or vmap) it is
+    ``fn(system, *numbers)`` itself, traced into the caller's program."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves((system, numbers))):
+        return fn(system, *numbers)
+    numbers = tuple(v if isinstance(v, jax.Array) else jnp.asarray(np.asarray(v, float), float) for v in numbers)
+    return call(name, fn, (system, *numbers), compiler_options=QUICK_OPTIONS)
 
 
 def call(name: str, fn: Callable, args: tuple, error_mode: str | None = None, fallback: Callable | None = None,

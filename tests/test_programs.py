@@ -295,3 +295,34 @@ def test_quick_options_are_a_program_of_their_own_and_prepare_passes_them_on(tmp
     ref = eqx.filter_jit(fn)(x, y)["z"]
     np.testing.assert_array_equal(plain["z"], ref)
     np.testing.assert_allclose(quick["z"], ref, rtol=1e-14, atol=1e-15)
+
+
+def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_agree(tmp_path, monkeypatch):
+    """Scene helpers that build a state from numbers (small_call): with concrete numbers
+    one program, stored in the cache and loaded back by a new process without a trace;
+    traced numbers (vmap) take the plain operations; the states agree to rounding."""
+    import jax
+
+    from nhjax.scenes import BallInCone, BallOnPlatter, RollingDisk, ThreeCylinders
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    cone, platter, disk, cyl = BallInCone(), BallOnPlatter(), RollingDisk(), ThreeCylinders()
+    q = [0.9, 0.1, -0.2, 0.3]
+    cases = [  # (eager helper, the same under vmap over one number, values of that number)
+        (lambda r: cone.initial_state(r, 0.3, -0.2, 0.4, 0.7, attitude=q), [2.5, 3.0]),
+        (lambda u: platter.initial_state(u, 0.2, 0.1, -0.3, 2.0, attitude=q), [0.5, -1.0]),
+        (lambda s: disk.to_quaternion_state(disk.initial_state(theta=0.3, phi_dot=0.4, psi_dot=s)), [1.5, -0.7]),
+        (lambda th: cyl.initial_state(theta=th, phi_dot=1.2), [2.0, 0.4]),
+    ]
+    stored = _programs.STATS["stored"]
+    eager = [np.stack([np.asarray(f(v)) for v in vals]) for f, vals in cases]
+    assert _programs.STATS["stored"] == stored + len(cases)  # one program per helper, for both values
+    monkeypatch.setattr(_programs, "_MEMORY", {})  # as a new process: only the disk remains
+    loaded = _programs.STATS["loaded"]
+    again = [np.stack([np.asarray(f(v)) for v in vals]) for f, vals in cases]
+    assert _programs.STATS["loaded"] == loaded + len(cases)
+    for (f, vals), e, a in zip(cases, eager, again):
+        np.testing.assert_array_equal(a, e)
+        traced = np.asarray(jax.vmap(f)(jnp.asarray(vals)))
+        np.testing.assert_allclose(traced, e, rtol=0, atol=1e-14)

@@ -294,10 +294,10 @@ def test_eager_checks_raise_before_the_solve_runs_and_the_projected_start_is_sol
         called.append(name)
         return real_call(name, *args, **kwargs)
 
-    monkeypatch.setattr(_programs, "call", recording)
     ball = BallOnPlatter()
-    x = ball.initial_state(u1=1.0, u2=0.5, u1_dot=0.2, u2_dot=1.0, spin=0.3)
+    x = ball.initial_state(u1=1.0, u2=0.5, u1_dot=0.2, u2_dot=1.0, spin=0.3)  # a program of its own
     bad = x.at[3:7].multiply(2.0)
+    monkeypatch.setattr(_programs, "call", recording)
     with pytest.raises(E.ConstraintViolationError, match="position.*Pass project=True"):
         nhjax.simulate(ball, bad, 0.5)
     assert called == ["report"]

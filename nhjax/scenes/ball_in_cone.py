@@ -88,6 +88,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
@@ -102,6 +103,21 @@ _AXIS_HINT = (
     "the contact frame (its azimuth) is undefined. Give the ball an angular momentum "
     "about the axis (alpha_dot != 0) to keep it off the axis, or use on_guard='stop'."
 )
+
+
+def _cone_state(system, rho, alpha, rho_dot, alpha_dot, spin, p):
+    """``BallInCone.initial_state``'s state from its checked numbers (p the attitude)."""
+    sg, cg = jnp.sin(system.gamma), jnp.cos(system.gamma)
+    D = rho * sg - system.r * cg
+    ca, sa = jnp.cos(alpha), jnp.sin(alpha)
+    gv = jnp.stack([sg * ca, sg * sa, cg])
+    ea = jnp.stack([-sa, ca, jnp.zeros_like(ca)])
+    nv = jnp.stack([-cg * ca, -cg * sa, sg])
+    u = rho * gv + system.r * nv
+    ud = rho_dot * gv + alpha_dot * D * ea
+    w = (-alpha_dot * D / system.r) * gv + (rho_dot / system.r) * ea + spin * nv
+    pd = 0.5 * so3.quat_mul(_vec(w), p)
+    return jnp.concatenate([u, p, ud, pd])
 
 
 def _vec(a):
@@ -231,25 +247,21 @@ class BallInCone(ConstrainedLagrangian):
         owner = "BallInCone.initial_state"
         rho, alpha, rho_dot, alpha_dot, spin = (real(k, v, owner=owner) for k, v in (
             ("rho", rho), ("alpha", alpha), ("rho_dot", rho_dot), ("alpha_dot", alpha_dot), ("spin", spin)))
-        sg, cg = jnp.sin(self.gamma), jnp.cos(self.gamma)
-        D = rho * sg - self.r * cg
-        if not isinstance(D, jax.core.Tracer) and not bool(D > self.chart_eps * self.r):
-            lo = float(self.r * cg / sg)
-            raise ParameterError(
-                f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
-                f"(D = rho sin(gamma) - r cos(gamma) = {float(D):.3g}); rho must exceed r cot(gamma) = {lo:.6g} "
-                "(the ball resting at the bottom) by the guard's margin", "rho", rho)
-        ca, sa = jnp.cos(alpha), jnp.sin(alpha)
-        gv = jnp.stack([sg * ca, sg * sa, cg])
-        ea = jnp.stack([-sa, ca, jnp.zeros_like(ca)])
-        nv = jnp.stack([-cg * ca, -cg * sa, sg])
-        u = rho * gv + self.r * nv
-        ud = rho_dot * gv + alpha_dot * D * ea
-        w = (-alpha_dot * D / self.r) * gv + (rho_dot / self.r) * ea + spin * nv
-        p = jnp.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
+        if not isinstance(rho, jax.core.Tracer) and not isinstance(self.gamma, jax.core.Tracer):
+            # the chart check in numpy on the host (no program of its own)
+            sg, cg, r = np.sin(float(self.gamma)), np.cos(float(self.gamma)), float(self.r)
+            D = float(rho) * sg - r * cg
+            if not D > self.chart_eps * r:
+                raise ParameterError(
+                    f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
+                    f"(D = rho sin(gamma) - r cos(gamma) = {D:.3g}); rho must exceed r cot(gamma) = "
+                    f"{r * cg / sg:.6g} (the ball resting at the bottom) by the guard's margin", "rho", rho)
+        p = np.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
             "attitude", attitude, owner=owner, normalize=True)
-        pd = 0.5 * so3.quat_mul(_vec(w), p)
-        return jnp.concatenate([u, p, ud, pd])
+        # concrete numbers: one compiled program instead of some 40 eager operations (small
+        # programs compiled in every new process)
+        return _programs.small_call("BallInCone.initial_state", _cone_state, self, rho, alpha, rho_dot, alpha_dot,
+                                    spin, p)
 
     # ------------------------------------------------------------ exact relations
     def _reduced(self, x):

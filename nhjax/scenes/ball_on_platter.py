@@ -65,6 +65,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
@@ -84,6 +85,17 @@ def baumgarte_gains(owner, gains):
                  for n, v in (("baumgarte[0]", a), ("baumgarte[1]", b)))
 
 E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
+
+
+def _platter_state(system, u1, u2, u1_dot, u2_dot, spin, p):
+    """``BallOnPlatter.initial_state``'s state from its checked numbers (p the attitude):
+    the horizontal angular velocity from the no-slip condition."""
+    u = jnp.stack([u1, u2, system.r])
+    ud = jnp.stack([u1_dot, u2_dot, jnp.zeros(())])
+    w_h = (jnp.cross(E3, ud) + system.Omega * u * jnp.array([1.0, 1.0, 0.0])) / system.r
+    w = w_h + spin * E3
+    pd = 0.5 * so3.quat_mul(_vec(w), p)
+    return jnp.concatenate([u, p, ud, pd])
 
 
 def _vec(a):
@@ -174,16 +186,13 @@ class BallOnPlatter(ConstrainedLagrangian):
         vertical spin w3 [rad/s], attitude (unit quaternion, default identity).
         The horizontal angular velocity follows from the no-slip condition."""
         owner = "BallOnPlatter.initial_state"
-        u1, u2, u1_dot, u2_dot, spin = (real(n, v, owner=owner) for n, v in (
-            ("u1", u1), ("u2", u2), ("u1_dot", u1_dot), ("u2_dot", u2_dot), ("spin", spin)))
-        u = jnp.stack([u1, u2, self.r])
-        ud = jnp.stack([u1_dot, u2_dot, jnp.zeros(())])
-        p = jnp.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
+        numbers = [real(n, v, owner=owner) for n, v in (
+            ("u1", u1), ("u2", u2), ("u1_dot", u1_dot), ("u2_dot", u2_dot), ("spin", spin))]
+        p = np.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
             "attitude", attitude, owner=owner, normalize=True)
-        w_h = (jnp.cross(E3, ud) + self.Omega * u * jnp.array([1.0, 1.0, 0.0])) / self.r
-        w = w_h + jnp.asarray(spin, float) * E3
-        pd = 0.5 * so3.quat_mul(_vec(w), p)
-        return jnp.concatenate([u, p, ud, pd])
+        # concrete numbers: one compiled program instead of eager operations (small programs
+        # compiled in every new process)
+        return _programs.small_call("BallOnPlatter.initial_state", _platter_state, self, *numbers, p)
 
     def angular_velocity(self, x):
         """Spatial angular velocity w [rad/s] at state x."""

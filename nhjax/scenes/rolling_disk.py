@@ -120,6 +120,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
@@ -284,17 +285,24 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
         return 2 * np.pi / (q * float(self.r) * self.circular_rate(theta0, q))
 
     def to_quaternion_state(self, x):
-        """The same state in ``RollingDiskQuaternion`` coordinates (u, p, u', p')."""
-        q, qd = x[:5], x[5:]
-        (R, u), (Rd, ud) = jax.jvp(self.pose, (q,), (qd,))
-        p = so3.quat_from_matrix(R)
-        p = p * jnp.sign(p[0] + (p[0] == 0))  # representative with p0 >= 0
-        W = so3.vee(R.T @ Rd)
-        pd = 0.5 * so3.quat_mul(p, jnp.concatenate([jnp.zeros(1), W]))
-        return jnp.concatenate([u, p, ud, pd])
+        """The same state in ``RollingDiskQuaternion`` coordinates (u, p, u', p'). A
+        concrete x: one compiled program (``nhjax._programs.small_call``) instead of
+        eager operations, each a small program compiled in every new process."""
+        return _programs.small_call("RollingDisk.to_quaternion_state", _quaternion_state, self, jnp.asarray(x))
 
     def quaternion_model(self):
         return RollingDiskQuaternion(self.m, self.r, self.g, self.J1, self.J2, self.chart_eps)
+
+
+def _quaternion_state(disk, x):
+    """``RollingDisk.to_quaternion_state``'s computation."""
+    q, qd = x[:5], x[5:]
+    (R, u), (Rd, ud) = jax.jvp(disk.pose, (q,), (qd,))
+    p = so3.quat_from_matrix(R)
+    p = p * jnp.sign(p[0] + (p[0] == 0))  # representative with p0 >= 0
+    W = so3.vee(R.T @ Rd)
+    pd = 0.5 * so3.quat_mul(p, jnp.concatenate([jnp.zeros(1), W]))
+    return jnp.concatenate([u, p, ud, pd])
 
 
 class RollingDiskQuaternion(_DiskParams, ConstrainedLagrangian):

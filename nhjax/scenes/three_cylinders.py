@@ -185,9 +185,9 @@ class _Common(ConstrainedLagrangian):
     def _initial_state(self, owner, x1, x2, theta, phi, psi1, psi2, theta_dot, phi_dot):
         """The consistent state (``_state_of``) of the configuration y and the free rates
         theta', phi' (see ``ThreeCylindersMinimal.initial_state``), after the numbers'
-        checks. Concrete numbers: one compiled program from nhjax's program cache (the
-        state as separate eager operations compiled some 60 small programs in every new
-        process, more than the first simulate() itself on a warm cache)."""
+        checks. Concrete numbers: one compiled program (``nhjax._programs.small_call``;
+        as separate eager operations the state compiled some 60 small programs in every
+        new process, more than the first simulate() itself on a warm cache)."""
         vals = [real(k, v, owner=owner, as_float=True) for k, v in (
             ("x1", x1), ("x2", x2), ("theta", theta), ("phi", phi), ("psi1", psi1), ("psi2", psi2),
             ("theta_dot", theta_dot), ("phi_dot", phi_dot))]
@@ -200,9 +200,8 @@ class _Common(ConstrainedLagrangian):
                 f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
                 f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
                 f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
-        numbers = jnp.asarray(np.asarray(vals, float), float)  # from numpy: no program of its own
-        return _programs.call(f"{type(self).__name__}.initial_state", _initial_from_numbers, (self, numbers),
-                              compiler_options=_programs.QUICK_OPTIONS)
+        return _programs.small_call(f"{type(self).__name__}.initial_state", _initial_from_numbers, self,
+                                    np.asarray(vals, float))
 
 
 def _initial_from_numbers(system, vals):
