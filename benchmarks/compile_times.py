@@ -13,7 +13,9 @@ directory:
   run again): tracing, the compiled programs loaded from the cache, one run; the
   faster of two;
 * the run alone (median of 5 later calls) and the accepted steps, so the first-call
-  cost can be read against the work it buys.
+  cost can be read against the work it buys;
+* x0: the time to build the system and its start state before that call (its
+  ``initial_state`` and the like), cold and warm: a user waits for it too.
 
 Beside the registry's scenes, a system as a researcher writes it through
 ``nhjax.mechanics.Lagrangian``: a six-link wheeled snake (8 coordinates, 5
@@ -115,7 +117,10 @@ import nhjax
 import nhjax.scenes as S
 t_import = time.perf_counter() - t_import
 control = None
+t_state = time.perf_counter()
 {case}
+jax.block_until_ready(X if "X" in globals() else x0)
+t_state = time.perf_counter() - t_state
 if "X" in globals():  # a batch case
     call = lambda: nhjax.simulate_batch(system, X, t1, control=control, on_error="return")
 else:
@@ -129,7 +134,7 @@ for _ in range(5):
     t = time.perf_counter()
     jax.block_until_ready(call().xs)
     runs.append(time.perf_counter() - t)
-print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s=t_import,
+print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s=t_import, state_s=t_state,
                       steps=int(np.max(tr.num_accepted_steps)), t1=float(t1))))
 """
 
@@ -167,7 +172,8 @@ def measure(name: str) -> dict:
         return dict(scene=name, **bad[0])
     best = min(colds, key=lambda c: c["first_call_s"])
     return dict(scene=name, **best, cold_runs_s=[c["first_call_s"] for c in colds],
-                warm_first_call_s=min(w["first_call_s"] for w in warm), warm_runs_s=[w["first_call_s"] for w in warm])
+                warm_first_call_s=min(w["first_call_s"] for w in warm), warm_runs_s=[w["first_call_s"] for w in warm],
+                warm_state_s=min(w["state_s"] for w in warm))
 
 
 def plot(rows, path):
@@ -197,7 +203,8 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     load_start = os.getloadavg()
     rows = []
-    print(f"{'scene':42s} {'cold s':>7s} {'(slowest)':>9s} {'warm s':>7s} {'run ms':>9s} {'steps':>6s}")
+    print(f"{'scene':42s} {'cold s':>7s} {'(slowest)':>9s} {'warm s':>7s} {'run ms':>9s} {'steps':>6s} "
+          f"{'x0 cold/warm s':>15s}")
     names = sys.argv[1:] or [*CASES, *BATCH_CASES]
     unknown = sorted(set(names) - set(CASES) - set(BATCH_CASES))
     if unknown:
@@ -210,8 +217,7 @@ def main():
             continue
         r["compile_s"] = r["first_call_s"] - r["run_s"]
         print(f"{name:42s} {r['first_call_s']:7.2f} {max(r['cold_runs_s']):9.2f} {r['warm_first_call_s']:7.2f} "
-              f"{r['run_s'] * 1e3:9.2f} "
-              f"{r['steps']:6d}", flush=True)
+              f"{r['run_s'] * 1e3:9.2f} {r['steps']:6d} {r['state_s']:7.2f}/{r['warm_state_s']:.2f}", flush=True)
     load_end = os.getloadavg()
     ok = [r for r in rows if "error" not in r]
     print(f"cold under 3 s: {sum(r['first_call_s'] < 3 for r in ok)} of {len(ok)}; warm under 0.5 s: "
@@ -225,7 +231,7 @@ def main():
     (OUT / "compile_times.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
     with open(OUT / "compile_times.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=["scene", "first_call_s", "warm_first_call_s", "compile_s", "run_s", "steps", "t1",
-                                          "import_s"],
+                                          "import_s", "state_s", "warm_state_s"],
                            extrasaction="ignore")
         w.writeheader()
         w.writerows(ok)
