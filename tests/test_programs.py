@@ -303,26 +303,32 @@ def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_ag
     traced numbers (vmap) take the plain operations; the states agree to rounding."""
     import jax
 
-    from nhjax.scenes import BallInCone, BallOnPlatter, RollingDisk, ThreeCylinders
+    from nhjax.scenes import BallInCone, BallOnPlatter, FallingCat, RollingDisk, ThreeCylinders
 
     monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
     monkeypatch.setattr(_programs, "_MEMORY", {})
     cone, platter, disk, cyl = BallInCone(), BallOnPlatter(), RollingDisk(), ThreeCylinders()
+    cat = FallingCat().attitude_model()
+
+    def flat(out):  # a state, or a tuple of state parts (the cat's attitudes)
+        return np.concatenate([np.ravel(np.asarray(a)) for a in jax.tree_util.tree_leaves(out)])
     q = [0.9, 0.1, -0.2, 0.3]
     cases = [  # (eager helper, the same under vmap over one number, values of that number)
         (lambda r: cone.initial_state(r, 0.3, -0.2, 0.4, 0.7, attitude=q), [2.5, 3.0]),
         (lambda u: platter.initial_state(u, 0.2, 0.1, -0.3, 2.0, attitude=q), [0.5, -1.0]),
         (lambda s: disk.to_quaternion_state(disk.initial_state(theta=0.3, phi_dot=0.4, psi_dot=s)), [1.5, -0.7]),
         (lambda th: cyl.initial_state(theta=th, phi_dot=1.2), [2.0, 0.4]),
+        (lambda c: cat.initial_state(0.8, chi=c, psi=0.3, chi_dot=0.5), [0.2, -1.0]),
     ]
     stored = _programs.STATS["stored"]
-    eager = [np.stack([np.asarray(f(v)) for v in vals]) for f, vals in cases]
+    eager = [np.stack([flat(f(v)) for v in vals]) for f, vals in cases]
     assert _programs.STATS["stored"] == stored + len(cases)  # one program per helper, for both values
     monkeypatch.setattr(_programs, "_MEMORY", {})  # as a new process: only the disk remains
     loaded = _programs.STATS["loaded"]
-    again = [np.stack([np.asarray(f(v)) for v in vals]) for f, vals in cases]
+    again = [np.stack([flat(f(v)) for v in vals]) for f, vals in cases]
     assert _programs.STATS["loaded"] == loaded + len(cases)
     for (f, vals), e, a in zip(cases, eager, again):
         np.testing.assert_array_equal(a, e)
-        traced = np.asarray(jax.vmap(f)(jnp.asarray(vals)))
+        traced = jax.vmap(f)(jnp.asarray(vals))
+        traced = np.stack([flat(jax.tree_util.tree_map(lambda a, k=k: a[k], traced)) for k in range(len(vals))])
         np.testing.assert_allclose(traced, e, rtol=0, atol=1e-14)

@@ -66,6 +66,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .. import _validate as V
 from ..lie import SO3Body, Euclidean, so3
 from ..mechanics import AbstractSystem, ConstrainedLagrangian, MultibodyKinetics, RigidBody
@@ -480,10 +481,11 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
 
     def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
         """((g1, g2, s)) from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
-        theta, chi, psi, theta_dot, chi_dot = _state_args(
-            type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot, chi_dot=chi_dot)
-        Rs, _ = self.poses(jnp.stack([theta, chi, psi]))
-        return (Rs[0], Rs[1], jnp.stack([theta, chi, theta_dot, chi_dot]))
+        numbers = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
+                              chi_dot=chi_dot)
+        # concrete numbers: one compiled program instead of eager operations (small programs
+        # compiled in every new process)
+        return _programs.small_call("FallingCatAttitudes.initial_state", _attitudes_state, self, *numbers)
 
     def body_angular_velocities(self, s):
         """Omega_1, Omega_2 [rad/s] for shape state s = (theta, chi, theta', chi')."""
@@ -542,6 +544,12 @@ class _OnAttitudeModel(eqx.Module):
     def __call__(self, t, y):
         s = y[2]
         return self.control(t, jnp.stack([s[0], s[1], jnp.zeros_like(s[0]), s[2], s[3]]))
+
+
+def _attitudes_state(cat, theta, chi, psi, theta_dot, chi_dot):
+    """``FallingCatAttitudes.initial_state``'s state from its checked numbers."""
+    Rs, _ = cat.poses(jnp.stack([theta, chi, psi]))
+    return (Rs[0], Rs[1], jnp.stack([theta, chi, theta_dot, chi_dot]))
 
 
 def _state_args(owner, **kw):
