@@ -288,7 +288,7 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
         """The same state in ``RollingDiskQuaternion`` coordinates (u, p, u', p'). A
         concrete x: one compiled program (``nhjax._programs.small_call``) instead of
         eager operations, each a small program compiled in every new process."""
-        return _programs.small_call("RollingDisk.to_quaternion_state", _quaternion_state, self, jnp.asarray(x))
+        return _programs.small_call("RollingDisk.to_quaternion_state", _quaternion_state, self, x)
 
     def quaternion_model(self):
         return RollingDiskQuaternion(self.m, self.r, self.g, self.J1, self.J2, self.chart_eps)
