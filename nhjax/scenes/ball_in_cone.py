@@ -247,7 +247,7 @@ class BallInCone(ConstrainedLagrangian):
         owner = "BallInCone.initial_state"
         rho, alpha, rho_dot, alpha_dot, spin = (real(k, v, owner=owner) for k, v in (
             ("rho", rho), ("alpha", alpha), ("rho_dot", rho_dot), ("alpha_dot", alpha_dot), ("spin", spin)))
-        if not isinstance(rho, jax.core.Tracer) and not isinstance(self.gamma, jax.core.Tracer):
+        if not any(isinstance(v, jax.core.Tracer) for v in (rho, self.gamma, self.r)):
             # the chart check in numpy on the host (no program of its own)
             sg, cg, r = np.sin(float(self.gamma)), np.cos(float(self.gamma)), float(self.r)
             D = float(rho) * sg - r * cg

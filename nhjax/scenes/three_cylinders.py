@@ -90,7 +90,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _programs
-from .._validate import is_traced
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
@@ -191,17 +190,18 @@ class _Common(ConstrainedLagrangian):
         vals = [real(k, v, owner=owner, as_float=True) for k, v in (
             ("x1", x1), ("x2", x2), ("theta", theta), ("phi", phi), ("psi1", psi1), ("psi2", psi2),
             ("theta_dot", theta_dot), ("phi_dot", phi_dot))]
-        if any(isinstance(v, jax.core.Tracer) for v in vals) or is_traced(self):
-            return _initial_from_numbers(self, jnp.stack([jnp.asarray(v, float) for v in vals]))
-        th, a = float(vals[2]), float(self.a)
-        margin = min(abs(np.sin(th)), abs(np.sin(th - a)))
-        if not margin > self.chart_eps:
-            raise ParameterError(
-                f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
-                f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
-                f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
-        return _programs.small_call(f"{type(self).__name__}.initial_state", _initial_from_numbers, self,
-                                    np.asarray(vals, float))
+        if not isinstance(vals[2], jax.core.Tracer) and not isinstance(self.a, jax.core.Tracer):
+            # the chart check on the host (numpy), whenever theta and a are concrete
+            th, a = float(vals[2]), float(self.a)
+            margin = min(abs(np.sin(th)), abs(np.sin(th - a)))
+            if not margin > self.chart_eps:
+                raise ParameterError(
+                    f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
+                    f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
+                    f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
+        traced = any(isinstance(v, jax.core.Tracer) for v in vals)
+        numbers = jnp.stack([jnp.asarray(v, float) for v in vals]) if traced else np.asarray(vals, float)
+        return _programs.small_call(f"{type(self).__name__}.initial_state", _initial_from_numbers, self, numbers)
 
 
 def _initial_from_numbers(system, vals):
