@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
+import optimistix as optx
 
 import nhjax
 from nhjax._linalg import solve as small_solve
@@ -204,16 +205,64 @@ def _extremal(ham, p0, rtol, atol, adjoint=None):
                           track_work=False, diagnostics=False, **({} if adjoint is None else {"adjoint": adjoint}))
 
 
+class _ExtremalSensitivity(AbstractSystem):
+    """(x, p, J) along the extremal from (x0, p0) (as ``_CostOfExtremal``) and the
+    sensitivity Phi = d(x, p)/dp0 (2n x n, row-major after J), by the variational
+    equations Phi' = D_(x,p)F(t, x, p) Phi with F = (dH/dp, -dH/dx) under u*."""
+
+    ham: HamiltonianSystem
+    large_vector_field: ClassVar[bool] = True
+
+    def vector_field(self, t, y, u=None):
+        n = self.ham.n
+        phi = y[2 * n + 1:].reshape(2 * n, n)
+
+        def flow(xp):
+            ustar, dx, dp = self.ham.flow(t, xp[:n], xp[n:])
+            return jnp.concatenate([dx, dp]), self.ham.ocp.running_cost(t, xp[:n], ustar)
+
+        dxp, dphi, cost = jax.vmap(lambda col: jax.jvp(flow, (y[:2 * n],), (col,), has_aux=True),
+                                   in_axes=1, out_axes=(None, 1, None))(phi)
+        return jnp.concatenate([dxp, cost[None], dphi.reshape(-1)])
+
+
+class _LeadingNorm(eqx.Module):
+    """The RMS norm of a state's first ``size`` components: the error norm of a solve
+    that carries sensitivities, which then takes the steps of the solve without them."""
+
+    size: int = eqx.field(static=True)
+
+    def __call__(self, y):
+        return optx.rms_norm(y[: self.size])
+
+
 @eqx.filter_jit
 def _residual_and_extremal(sh, z):
-    """Single shooting's residual at z and the extremal it comes from (``_extremal``
-    with the forward-mode adjoint): one solve for both. A nested jit: the root find's
-    ``jax.eval_shape`` of its outputs and its forward-mode pass share one trace."""
+    """Single shooting's residual r at z, its Jacobian dr/dz, and the extremal it comes
+    from (``_extremal``'s solve, saved points and steps): one solve for all three. The
+    Jacobian comes from the variational equations integrated alongside
+    (``_ExtremalSensitivity``; the error norm on (x, p, J) alone, so the steps are the
+    extremal's): the derivative of the discrete flow at those steps (internal
+    numerical differentiation, Bock 1981), which is also what forward mode through
+    the solve gives (diffrax's controller stops gradients through the step sizes).
+    The program then holds the ODE solve once, not its forward-mode derivative (the
+    jvp and batching of the solver's whole loop): a shorter trace and compile. A
+    nested jit: the root find's ``jax.eval_shape`` of its outputs and its loop share
+    one trace."""
     ocp = sh.ham.ocp
     n = ocp.x0.shape[0]
-    tr = _extremal(sh.ham, z[:n], sh.rtol, sh.atol, diffrax.ForwardMode())
+    phi0 = jnp.concatenate([jnp.zeros((n, n)), jnp.eye(n)])  # d(x0, p0)/dp0
+    y0 = jnp.concatenate([ocp.x0, z[:n], jnp.zeros(1), phi0.reshape(-1)])
+    controller = diffrax.PIDController(rtol=sh.rtol, atol=sh.atol, norm=_LeadingNorm(2 * n + 1))
+    tr = nhjax.simulate(_ExtremalSensitivity(sh.ham), y0, ocp.T, saveat=_EXTREMAL_POINTS, track_work=False,
+                        diagnostics=False, stepsize_controller=controller)
     yT = tr.xs[-1]
-    return _terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:]), tr
+    r, (dr_dxp, dr_dnu) = (_terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:]),
+                           jax.jacfwd(lambda xp, nu: _terminal_residual(ocp, xp[:n], xp[n:], nu),
+                                      argnums=(0, 1))(yT[:2 * n], z[n:]))
+    jac = jnp.concatenate([dr_dxp @ yT[2 * n + 1:].reshape(2 * n, n), dr_dnu], axis=1)
+    tr = eqx.tree_at(lambda t: (t.xs, t.x_end), tr, (tr.xs[:, : 2 * n + 1], tr.x_end[: 2 * n + 1]))
+    return r, jac, tr
 
 
 def _value_and_jacobian(z, evaluate):
@@ -242,12 +291,14 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
     residual r(z) (``shooting.residual``, with ``shooting.residual_size`` entries): z,
     r(z), the number of steps taken, and with ``extremal`` (single shooting) the
     extremal of z (else ``()``): then the loop's solve is ``_residual_and_extremal``'s,
-    which also integrates the running cost and saves the extremal, and the loop keeps
-    the one of its last accepted point, so that the answer needs no solve of its own.
+    which also integrates the running cost, the variational equations for the Jacobian,
+    and saves the extremal, and the loop keeps the one of its last accepted point, so
+    that the answer needs no solve of its own.
 
-    Each iteration evaluates r and its Jacobian once, at the point it tries, in one
-    forward-mode pass (``_value_and_jacobian``): the compiled loop holds one copy of
-    the extremal's ODE solve. (optimistix's Newton and Levenberg–Marquardt evaluate
+    Each iteration evaluates r and its Jacobian once, at the point it tries: with
+    ``extremal`` by that solve, else in one forward-mode pass (``_value_and_jacobian``,
+    the exact derivative of the solve, step-size control included); the compiled loop
+    holds one copy of the extremal's ODE solve. (optimistix's Newton and Levenberg–Marquardt evaluate
     r and build its Jacobian operator separately, three copies of the solve in one
     program: about twice the time to trace and compile, and the time to a first
     answer is mostly that.) The first iteration evaluates at z0 itself.
@@ -268,11 +319,14 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
     z0 = jnp.asarray(z0, float)
     n = z0.shape[0]
     if extremal:
-        evaluate = functools.partial(_residual_and_extremal, shooting)
+        values_and_jacobian = functools.partial(_residual_and_extremal, shooting)
         # (the outputs' shapes: a trace that the loop's call of the nested jit reuses)
-        aux0 = jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(evaluate, z0)[1])
+        aux0 = jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(values_and_jacobian, z0)[2])
     else:
-        evaluate, aux0 = (lambda y: (shooting.residual(y), ())), ()
+        def values_and_jacobian(y):
+            return _value_and_jacobian(y, lambda y: (shooting.residual(y), ()))
+
+        aux0 = ()
 
     def proposal(r, jac, mu):
         """The step and the decrease of 0.5 |r|^2 that the linearization predicts for it."""
@@ -289,7 +343,7 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
         dz, predicted = proposal(r, jac, mu)
         dz = jnp.where(first, 0.0, dz)
         z_try = jnp.where(first, z0, z + dz)
-        r_try, jac_try, aux_try = _value_and_jacobian(z_try, evaluate)
+        r_try, jac_try, aux_try = values_and_jacobian(z_try)
         ok = jnp.all(jnp.isfinite(r_try)) & jnp.all(jnp.isfinite(jac_try))
         gain = 0.5 * (r @ r - r_try @ r_try) / predicted  # actual over predicted decrease
         accept = first | (ok & ((gain > 0) | (not damped)))

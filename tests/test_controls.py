@@ -234,6 +234,51 @@ def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
             np.testing.assert_allclose(r.cost, ref.cost, rtol=1e-10)
 
 
+def test_the_variational_jacobian_of_the_quick_program_is_the_forward_mode_one():
+    """The quick Pontryagin program's residual Jacobian comes from the variational
+    equations integrated beside the extremal (steps chosen on (x, p, J) alone); the
+    forward-mode derivative of the same solve (step-size control included) is the
+    reference. diffrax's step-size controller stops gradients through the step sizes,
+    so both are the derivative of the discrete flow at the same steps: away from the
+    root (the pendulum swing from two costate guesses, with nonzero multipliers) they
+    agree to rounding, the residual and the extremal are the same solve's, and a wrong
+    sign or transposition in the variational equations would be off by O(1)."""
+    import diffrax
+
+    from controls.pontryagin import (
+        HamiltonianSystem,
+        _extremal,
+        _residual_and_extremal,
+        _Shooting,
+        _terminal_residual,
+        _value_and_jacobian,
+    )
+
+    ocp = controls.OCP(Pendulum(), jnp.zeros(2), 3.0, running_cost=HalfSquare(),
+                       terminal_constraints=Target(jnp.array([2.0, 0.0])))
+    sh = _Shooting(HamiltonianSystem(ocp), jnp.asarray(1e-11), jnp.asarray(1e-11), 1)
+
+    @eqx.filter_jit
+    def forward_mode(sh, z):  # the residual of the extremal's solve, differentiated through it
+        def evaluate(z):
+            tr = _extremal(sh.ham, z[:2], sh.rtol, sh.atol, diffrax.ForwardMode())
+            yT = tr.xs[-1]
+            return _terminal_residual(ocp, yT[:2], yT[2:4], z[2:]), tr
+
+        return _value_and_jacobian(z, evaluate)
+
+    for z in (jnp.array([3.0, 2.0, 0.5, -0.2]), jnp.array([40.0, -30.0, 1.0, 2.0])):
+        r, jac, tr = _residual_and_extremal(sh, z)
+        r_fwd, jac_fwd, tr_fwd = forward_mode(sh, z)
+        np.testing.assert_allclose(np.asarray(r), np.asarray(r_fwd), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(tr.xs), np.asarray(tr_fwd.xs), rtol=1e-12, atol=1e-12)
+        assert int(tr.num_accepted_steps) == int(tr_fwd.num_accepted_steps)
+        scale = np.max(np.abs(np.asarray(jac_fwd)))
+        assert np.max(np.abs(np.asarray(jac) - np.asarray(jac_fwd))) < 1e-12 * scale
+        assert np.max(np.abs(np.asarray(jac)[:, :2])) > 1e-2 * scale  # the ODE part is not trivially small
+        assert tr.xs.shape[1] == 5  # (x, p, J): the sensitivities are not handed on
+
+
 def test_shooting_root_finds_the_root_and_damping_rescues_a_diverging_newton():
     """The Pontryagin solver's root find (Newton and Levenberg-Marquardt on a residual
     and its forward-mode Jacobian): both reach the root of a smooth system to 1e-12
