@@ -306,3 +306,29 @@ def test_eager_checks_raise_before_the_solve_runs_and_the_projected_start_is_sol
     assert called == ["report", "simulate", "diagnose"]
     assert abs(float(jnp.linalg.norm(tr.xs[0, 3:7])) - 1.0) < 1e-14
     assert float(tr.constraint_drift["position"]) < 1e-12
+
+
+def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):
+    """equinox formats every frame of the Python stack for each check it traces, for the
+    message of the "raise" mode. In the "nan" mode (controls' programs) and the "off"
+    mode (a solve's own diffrax checks) nothing shows it: a simulate() traced inside
+    ``controls.problem.nan_errors`` reads no stack. The checks still act: a NaN start
+    gives NaN outputs, a good one the eager solve's state."""
+    import traceback
+
+    from controls.problem import _clear_error_traces, nan_errors
+
+    _clear_error_traces()  # (equinox caches its traced checks; a cached one reads no stack either)
+    walks = []
+    real_walk = traceback.walk_stack
+    monkeypatch.setattr(traceback, "walk_stack", lambda f: (walks.append(1), real_walk(f))[1])
+    cat = FallingCat()
+    x0 = cat.initial_state(0.8, chi_dot=0.5)
+    with nan_errors():
+        end = jax.jit(lambda x: nhjax.simulate(cat, x, 2.0, saveat=2).xs[-1])
+        good, bad = end(x0), end(x0.at[2].set(jnp.nan))
+    _clear_error_traces()
+    assert walks == []
+    assert bool(jnp.all(jnp.isnan(bad)))
+    np.testing.assert_allclose(np.asarray(good), np.asarray(nhjax.simulate(cat, x0, 2.0, saveat=2).xs[-1]),
+                               rtol=1e-12, atol=1e-12)

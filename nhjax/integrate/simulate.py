@@ -530,10 +530,29 @@ def _error_checks(on: bool):
     with _ERROR_MODE_LOCK:
         old = _errors.EQX_ON_ERROR
         _errors.EQX_ON_ERROR = "off"
+        # equinox formats the whole Python stack for every check it traces, also when the
+        # mode makes the check nothing (the solver's own checks here): checks made in the
+        # "off" mode meanwhile return their input at once, which is what equinox returns
+        impl = getattr(_errors, "branched_error_if_impl_jit", None)
+        if impl is not None:
+            _errors.branched_error_if_impl_jit = functools.partial(_off_checks, impl)
         try:
             yield
         finally:
             _errors.EQX_ON_ERROR = old
+            if impl is not None:
+                _errors.branched_error_if_impl_jit = impl
+
+
+def _off_checks(impl, x, pred, index, msgs, *, on_error):
+    """equinox's branched_error_if_impl_jit (``impl``) for ``_error_checks``: a traced
+    check in the "off" mode is its input, without equinox's reading of the stack."""
+    from equinox import _errors
+
+    mode = _errors.EQX_ON_ERROR if on_error == "default" else on_error
+    if mode == "off" and isinstance(pred, jax.core.Tracer):
+        return x
+    return impl(x, pred, index, msgs, on_error=on_error)
 
 
 def _save_times(saveat, t0, t1, runtime_errors=False):
