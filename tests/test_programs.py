@@ -303,12 +303,23 @@ def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_ag
     traced numbers (vmap) take the plain operations; the states agree to rounding."""
     import jax
 
-    from nhjax.scenes import BallInCone, BallOnPlatter, FallingCat, RollingDisk, ThreeCylinders
+    from nhjax.scenes import (
+        BallInCone,
+        BallOnPlatter,
+        FallingCat,
+        RollingDisk,
+        ShellWithSuslovHinge,
+        ShellWithTop,
+        ShellWithTopReduced,
+        SuslovBundle,
+        ThreeCylinders,
+    )
 
     monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
     monkeypatch.setattr(_programs, "_MEMORY", {})
     cone, platter, disk, cyl = BallInCone(), BallOnPlatter(), RollingDisk(), ThreeCylinders()
     cat = FallingCat().attitude_model()
+    robot, reduced, hinge, bundle = ShellWithTop(), ShellWithTopReduced(), ShellWithSuslovHinge(), SuslovBundle()
 
     def flat(out):  # a state, or a tuple of state parts (the cat's attitudes)
         return np.concatenate([np.ravel(np.asarray(a)) for a in jax.tree_util.tree_leaves(out)])
@@ -319,6 +330,15 @@ def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_ag
         (lambda s: disk.to_quaternion_state(disk.initial_state(theta=0.3, phi_dot=0.4, psi_dot=s)), [1.5, -0.7]),
         (lambda th: cyl.initial_state(theta=th, phi_dot=1.2), [2.0, 0.4]),
         (lambda c: cat.initial_state(0.8, chi=c, psi=0.3, chi_dot=0.5), [0.2, -1.0]),
+        (lambda w: robot.initial_state(shell_omega=(0.1, -0.2, 0.3), top_omega=jnp.stack([0.0, w, 3.0]),
+                                       top_attitude=np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])),
+         [3.0, -1.0]),
+        (lambda w: reduced.initial_state(jnp.stack([1.0, w, 3.0]), attitude=[0.1, -0.2, 0.3], shell_velocity=(0.2, 0.1),
+                                         shell_spin=0.4), [2.0, -0.5]),
+        (lambda w: hinge.initial_state_zero_momentum(jnp.stack([w, 0.2]), attitude=[0.3, 0.1, -0.2]), [0.3, 1.1]),
+        (lambda w: bundle.initial_state(jnp.stack([0.3, w, 1.0]), Omega12=(0.1, -0.2),
+                                        attitude=np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])),
+         [0.2, -0.4]),
     ]
     stored = _programs.STATS["stored"]
     eager = [np.stack([flat(f(v)) for v in vals]) for f, vals in cases]

@@ -78,13 +78,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .. import _validate as V
 from ..mechanics import AbstractSystem
 from .shell_with_top import (
     _is_concrete,
     _positive,
     _vector3,
-    attitude_matrix,
+    as_matrix,
+    attitude_value,
     frame_residual,
     project_frame,
 )
@@ -240,23 +242,39 @@ class ShellWithSuslovHinge(_HingeParameters):
         by the hinge); attitude: body -> space (None, rotation vector or matrix);
         position: contact point (x, y) [m]."""
         owner = "ShellWithSuslovHinge.initial_state"
-        R = attitude_matrix(attitude, owner=owner)
+        a = attitude_value(attitude, owner=owner)
         om = V.vector("omega", omega, 3, owner=owner, what="body angular velocity [rad/s]")
         O12 = V.vector("Omega12", Omega12, 2, owner=owner, what="shell angular velocity along e1, e2 [rad/s]")
-        Om = jnp.stack([O12[0], O12[1], om[2]])
         pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
-        return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
+        # concrete numbers: one compiled program instead of eager operations
+        return _programs.small_call("ShellWithSuslovHinge.initial_state", _hinge_state, self, a, om, O12, pos)
 
     def initial_state_zero_momentum(self, omega12, attitude=None, position=(0.0, 0.0)):
         """The state with M = 0 and body rates (omega1, omega2) [rad/s]: omega3 and
         Omega follow from M = 0 and the hinge (sec. 2.4)."""
         owner = "ShellWithSuslovHinge.initial_state_zero_momentum"
-        R = attitude_matrix(attitude, owner=owner)
+        a = attitude_value(attitude, owner=owner)
         zm = ShellWithSuslovHingeZeroMomentum(self.ms, self.Rs, self.Is, self.mt, self.inertia)
         o12 = V.vector("omega12", omega12, 2, owner=owner, what="body rates (omega1, omega2) [rad/s]")
-        om, Om = zm.velocities(o12, R[2])
         pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
-        return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
+        return _programs.small_call("ShellWithSuslovHinge.initial_state_zero_momentum", _zero_momentum_state, zm,
+                                    a, o12, pos)
+
+
+def _hinge_state(system, attitude, om, O12, pos):
+    """``ShellWithSuslovHinge.initial_state``'s state from its checked numbers (Omega3 =
+    omega3 by the hinge)."""
+    R = as_matrix(attitude)
+    Om = jnp.stack([O12[0], O12[1], om[2]])
+    return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
+
+
+def _zero_momentum_state(zm, attitude, o12, pos):
+    """``initial_state_zero_momentum``'s state: omega3 and Omega from M = 0 and the hinge
+    (``zm``: the zero-momentum model with the same parameters)."""
+    R = as_matrix(attitude)
+    om, Om = zm.velocities(o12, R[2])
+    return jnp.concatenate([om, Om, R[2], R[0], R[1], pos])
 
 
 class ShellWithSuslovHingeZeroMomentum(_HingeParameters):
@@ -334,7 +352,14 @@ class ShellWithSuslovHingeZeroMomentum(_HingeParameters):
     def initial_state(self, omega12, attitude=None, position=(0.0, 0.0)):
         """Body rates (omega1, omega2) [rad/s], attitude body -> space, contact point [m]."""
         owner = "ShellWithSuslovHingeZeroMomentum.initial_state"
-        R = attitude_matrix(attitude, owner=owner)
+        a = attitude_value(attitude, owner=owner)
         o12 = V.vector("omega12", omega12, 2, owner=owner, what="body rates (omega1, omega2) [rad/s]")
         pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
-        return jnp.concatenate([o12, R[2], R[0], R[1], pos])
+        return _programs.small_call("ShellWithSuslovHingeZeroMomentum.initial_state", _reduced_zm_state, self, a,
+                                    o12, pos)
+
+
+def _reduced_zm_state(system, attitude, o12, pos):
+    """``ShellWithSuslovHingeZeroMomentum.initial_state``'s state from its checked numbers."""
+    R = as_matrix(attitude)
+    return jnp.concatenate([o12, R[2], R[0], R[1], pos])

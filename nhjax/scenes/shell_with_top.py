@@ -122,6 +122,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .. import _validate as V
 from ..lie import so3
 from ..mechanics import AbstractSystem, ConstrainedLagrangian
@@ -151,19 +152,33 @@ def _vector3(name, v, owner=""):
     return V.vector(name, v, 3, owner=owner)
 
 
-def attitude_matrix(attitude, name="attitude", owner=""):
-    """Rotation matrix (top axes -> space) from None (identity), a rotation
-    vector (3,) [rad] or a 3x3 rotation matrix (checked: R^T R = I within 1e-9, det +1)."""
+def attitude_value(attitude, name="attitude", owner=""):
+    """An attitude (top axes -> space) as given, checked: None (the identity matrix), a
+    rotation vector (3,) [rad] or a 3x3 rotation matrix (R^T R = I within 1e-9, det +1).
+    ``as_matrix`` turns it into the matrix (inside a state's program: see
+    ``nhjax._programs.small_call``)."""
     if attitude is None:
-        return jnp.eye(3)
+        return np.eye(3)
     R = V._as_real(name, attitude, owner, "a rotation vector (3,) or a 3x3 rotation matrix")
     if np.shape(R) == (3,):
-        return so3.exp(V.vector(name, R, 3, owner=owner))
+        return V.vector(name, R, 3, owner=owner)
     if np.shape(R) != (3, 3):
         raise V.ParameterError(
             f"{owner + ': ' if owner else ''}{name} must be a rotation vector (3,) or a 3x3 rotation matrix, "
             f"got shape {np.shape(R)}", name, attitude)
     return V.rotation(name, R, owner=owner, tol=1e-9)
+
+
+def as_matrix(attitude):
+    """The rotation matrix of an ``attitude_value``: exp of a rotation vector (3,), a
+    matrix as it is."""
+    return so3.exp(attitude) if jnp.shape(attitude) == (3,) else jnp.asarray(attitude)
+
+
+def attitude_matrix(attitude, name="attitude", owner=""):
+    """Rotation matrix (top axes -> space) from None (identity), a rotation
+    vector (3,) [rad] or a 3x3 rotation matrix (checked: R^T R = I within 1e-9, det +1)."""
+    return as_matrix(attitude_value(attitude, name, owner))
 
 
 def frame_residual(gamma, alpha, beta):
@@ -467,14 +482,24 @@ class ShellWithTopReduced(AbstractSystem):
         The shell's angular velocity follows from (1.5): Omega = gamma x V / Rs + Omega_z gamma.
         """
         owner = "ShellWithTopReduced.initial_state"
-        R = attitude_matrix(attitude, owner=owner)
-        al, be, ga = R[0], R[1], R[2]
-        vx, vy = V.vector("shell_velocity", shell_velocity, 2, owner=owner, what="(vx, vy) [m/s]")
-        Vc = R.T @ jnp.stack([vx, vy, jnp.zeros(())])
-        Om = jnp.cross(ga, Vc) / self.Rs + V.real("shell_spin", shell_spin, owner=owner, shape=()) * ga
+        a = attitude_value(attitude, owner=owner)
+        v = V.vector("shell_velocity", shell_velocity, 2, owner=owner, what="(vx, vy) [m/s]")
+        spin = V.real("shell_spin", shell_spin, owner=owner, shape=())
         om = V.vector("omega", omega, 3, owner=owner, what="angular velocity of the top, its axes [rad/s]")
         pos = V.vector("position", position, 2, owner=owner, what="contact point (x, y) [m]")
-        return jnp.concatenate([om, Om, ga, al, be, pos])
+        # concrete numbers: one compiled program instead of eager operations (small programs
+        # compiled in every new process)
+        return _programs.small_call("ShellWithTopReduced.initial_state", _reduced_state, self, a, v, spin, om, pos)
+
+
+def _reduced_state(system, attitude, v, spin, om, pos):
+    """``ShellWithTopReduced.initial_state``'s state from its checked numbers: the shell's
+    angular velocity from (1.5), Omega = gamma x V / Rs + Omega_z gamma."""
+    R = as_matrix(attitude)
+    al, be, ga = R[0], R[1], R[2]
+    Vc = R.T @ jnp.stack([v[0], v[1], jnp.zeros(())])
+    Om = jnp.cross(ga, Vc) / system.Rs + spin * ga
+    return jnp.concatenate([om, Om, ga, al, be, pos])
 
 
 # ---------------------------------------------------------------- engine model

@@ -47,13 +47,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .. import _validate as V
-from ..lie import Euclidean, SO3Body, so3
+from ..lie import Euclidean, SO3Body
 from ..mechanics import LieLagrangian
 
 __all__ = ["ShellWithTop"]
 
 E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
+
+
+def _robot_state(system, xy, Rsh, Rt, Ws, wt):
+    """``ShellWithTop.initial_state``'s state from its checked numbers: the centre's
+    velocity from rolling, V = W x (Rs e3), and the body angular velocities."""
+    Vc = jnp.cross(Ws, system.Rs * E3)
+    return (xy, Rsh, Rt), jnp.concatenate([Vc[:2], Rsh.T @ Ws, Rt.T @ wt])
 
 
 class ShellWithTop(LieLagrangian):
@@ -123,14 +131,14 @@ class ShellWithTop(LieLagrangian):
         """State from the centre's position [m], attitudes (3x3, default identity) and
         angular velocities in space [rad/s]; the centre's velocity follows from rolling."""
         owner = "ShellWithTop.initial_state"
-        Rsh = jnp.eye(3) if shell_attitude is None else V.rotation("shell_attitude", shell_attitude, owner=owner)
-        Rt = jnp.eye(3) if top_attitude is None else V.rotation("top_attitude", top_attitude, owner=owner)
+        Rsh = np.eye(3) if shell_attitude is None else V.rotation("shell_attitude", shell_attitude, owner=owner)
+        Rt = np.eye(3) if top_attitude is None else V.rotation("top_attitude", top_attitude, owner=owner)
         Ws = V.vector("shell_omega", shell_omega, 3, owner=owner, what="shell angular velocity in space [rad/s]")
         wt = V.vector("top_omega", top_omega, 3, owner=owner, what="top angular velocity in space [rad/s]")
         xy = V.vector("xy", xy, 2, owner=owner, what="position of the shell centre [m]")
-        Vc = jnp.cross(Ws, self.Rs * E3)
-        v = jnp.concatenate([Vc[:2], Rsh.T @ Ws, Rt.T @ wt])
-        return (xy, Rsh, Rt), v
+        # concrete numbers: one compiled program instead of eager operations (small programs
+        # compiled in every new process)
+        return _programs.small_call("ShellWithTop.initial_state", _robot_state, self, xy, Rsh, Rt, Ws, wt)
 
     def chaplygin_vector(self, y):
         """K = Is Omega_space + Rs e3 x (ms V + mt v_G) in space [kg m^2/s]; dK/dt = -Rt tau."""

@@ -75,6 +75,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _programs
 from .. import _validate as V
 from ..mechanics import AbstractSystem
 from .shell_with_top import (
@@ -82,7 +83,8 @@ from .shell_with_top import (
     _is_concrete,
     _positive,
     _vector3,
-    attitude_matrix,
+    as_matrix,
+    attitude_value,
     frame_residual,
     project_frame,
 )
@@ -252,8 +254,16 @@ class SuslovBundle(AbstractSystem):
         outer body's angular velocity along e1, e2 [rad/s] (Omega3 = omega3 by the
         hinge); attitude: inner body -> space (None, rotation vector or matrix)."""
         owner = "SuslovBundle.initial_state"
-        R = attitude_matrix(attitude, owner=owner)
+        a = attitude_value(attitude, owner=owner)
         om = V.vector("omega", omega, 3, owner=owner, what="inner body's angular velocity [rad/s]")
         O12 = V.vector("Omega12", Omega12, 2, owner=owner, what="outer body's angular velocity along e1, e2 [rad/s]")
-        Om = jnp.stack([O12[0], O12[1], om[2]])
-        return jnp.concatenate([om, Om, R[2], R[0], R[1]])
+        # concrete numbers: one compiled program instead of eager operations
+        return _programs.small_call("SuslovBundle.initial_state", _bundle_state, self, a, om, O12)
+
+
+def _bundle_state(system, attitude, om, O12):
+    """``SuslovBundle.initial_state``'s state from its checked numbers (Omega3 = omega3
+    by the hinge)."""
+    R = as_matrix(attitude)
+    Om = jnp.stack([O12[0], O12[1], om[2]])
+    return jnp.concatenate([om, Om, R[2], R[0], R[1]])
