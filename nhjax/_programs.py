@@ -314,7 +314,9 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     if program is not None:
         return None if program is _FAILED else program
     try:
-        key = _key(name, fn, args, error_mode, options, quick)
+        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
+        if options:
+            key += "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
     except Uncacheable:
         STATS["uncacheable"] += 1
         if quick is not None:
@@ -353,43 +355,6 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         if quick is not None:
             _MEMORY[quick] = program
     return None if program is _FAILED else program
-
-
-_KEYS: dict = {}  # quick key -> cache key (the fingerprint walks code and values: once per process)
-
-
-def _key(name, fn, args, error_mode, options, quick):
-    """The cache key (file name stem) of ``fn``'s program on ``args``; raises Uncacheable."""
-    key = _KEYS.get(quick) if quick is not None else None
-    if key is None:
-        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
-        if options:
-            key += "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
-        if quick is not None:
-            _KEYS[quick] = key
-    return key
-
-
-def stored(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
-           compiler_options: dict | None = None) -> bool:
-    """Whether ``fn``'s program on ``args``'s structure is in memory or in the cache
-    directory (so that ``prepare`` would not trace it): a caller that needs several
-    programs traces the ones that are not first, to start their compiles early."""
-    folder = directory()
-    if folder is None or jax.config.jax_disable_jit:
-        return False
-    options = dict(compiler_options or {})
-    quick = _quick_key(name, fn, args, error_mode, None, options)
-    if quick is None or quick is _TRACED:
-        return False
-    with _LOCK:
-        if quick in _MEMORY:
-            return True
-    try:
-        key = _key(name, fn, args, error_mode, options, quick)
-    except Uncacheable:
-        return False
-    return (folder / f"{key}-{_machine()}.exe").exists() or (folder / f"{key}.prog").exists()
 
 
 def _load_or_raise(path: Path):

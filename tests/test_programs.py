@@ -352,38 +352,3 @@ def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_ag
         traced = jax.vmap(f)(jnp.asarray(vals))
         traced = np.stack([flat(jax.tree_util.tree_map(lambda a, k=k: a[k], traced)) for k in range(len(vals))])
         np.testing.assert_allclose(traced, e, rtol=0, atol=1e-14)
-
-
-def test_a_first_simulate_traces_its_solve_first_and_a_stored_report_is_not_traced(tmp_path, monkeypatch):
-    """With an empty cache, an eager simulate() traces the solve (the longest compile)
-    before its input checks, taking the guard names and the projection flag from shapes
-    (``_check_structure``); with the checks' program on disk (a new process) it is
-    loaded, not traced. Both give the same trajectory, and the checks still raise before
-    the solve runs (tests/test_validation.py)."""
-    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
-    monkeypatch.setattr(_programs, "_MEMORY", {})
-    traced = []
-    real_export = _programs._export
-
-    def recording(fn, static, dyn_def, leaves, path):
-        traced.append(path.name.split("-")[0])
-        return real_export(fn, static, dyn_def, leaves, path)
-
-    monkeypatch.setattr(_programs, "_export", recording)
-    cat = FallingCat()
-    x0 = cat.initial_state(0.8, chi_dot=0.5)
-    control = nhjax.Sinusoids(jnp.zeros(2), jnp.array([0.04, 0.02]), jnp.array([1.7, 0.9]), jnp.zeros(2))
-    from nhjax.integrate.simulate import _report_args, member_report
-
-    args = _report_args(cat, control, x0, 0.0, False)
-    assert not _programs.stored("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    first = nhjax.simulate(cat, x0, 12.0, control=control, on_guard="stop")
-    assert traced == ["simulate", "report", "diagnose"]
-    assert _programs.stored("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    monkeypatch.setattr(_programs, "_MEMORY", {})  # a new process: only the disk remains
-    traced.clear()
-    assert _programs.stored("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    again = nhjax.simulate(cat, x0, 12.0, control=control, on_guard="stop")
-    assert traced == []
-    np.testing.assert_array_equal(np.asarray(again.xs), np.asarray(first.xs))
-    assert again.guard == first.guard and again.t_final == first.t_final

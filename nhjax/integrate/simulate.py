@@ -613,26 +613,16 @@ def _report_args(system, control, x0, t0, project):
 
 def _start_checks(system, control, x0, t0, project):
     """The first half of ``_check_inputs`` for an eager call: the host-side checks, and
-    ``member_report``'s program loaded in the background if it is stored. Returns (the
-    report's arguments, guard names, whether to project after each step, whether the
-    report's program is still to be traced: then ``_prepare_report`` does it after the
-    solve's program is traced, so that the longest compile starts first)."""
+    ``member_report``'s program traced (its shape errors raise here) and compiled in the
+    background. Returns (the report's arguments, guard names, whether to project after
+    each step)."""
     args = _report_args(system, control, x0, t0, project)
-    if not _programs.stored("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS):
-        # the names the solve needs from shapes alone (one small trace of the guards and
-        # constraints, cached per structure)
-        return args, *_check_structure(system, x0, args[3]), True
-    _prepare_report(args)
+    _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
     out_def = _programs.output_structure("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
     if out_def is None:
-        return args, *_check_structure(system, x0, args[3]), False
+        return args, *_check_structure(system, x0, args[3])
     _, report = jtu.tree_unflatten(out_def, [None] * out_def.num_leaves)  # the report's names
-    return args, tuple(report["guards"]), _drifting_constraints(report["constraints"]), False
-
-
-def _prepare_report(args):
-    """``member_report``'s program traced (or loaded) and compiled in the background."""
-    _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
+    return args, tuple(report["guards"]), _drifting_constraints(report["constraints"])
 
 
 def _finish_checks(report_args, system, x0, t0, constraint_tol, project):
@@ -816,7 +806,7 @@ def simulate(
       the solve and in less time, and runs slower than in the solve's program would.
     * ``progress``: a host callback in the loop, and a second compiled program.
 
-    A first eager call traces its programs (solve, input checks, diagnostics with
+    A first eager call traces its programs (input checks, solve, diagnostics with
     the saved states' projection) one after the other and compiles each in the
     background as soon as it is traced; the checks run, and raise, before the solve
     runs. Its solve is compiled with XLA's older loop emitters
@@ -847,7 +837,7 @@ def simulate(
     # runs any (see _start_checks); otherwise the checks run first, as a program of their own.
     early = not traced and _programs.directory() is not None
     if early:
-        report_args, guard_names, constrained, report_later = _start_checks(system, control, x0, t0, project)
+        report_args, guard_names, constrained = _start_checks(system, control, x0, t0, project)
     else:
         x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
     if project_steps is None:
@@ -882,16 +872,13 @@ def simulate(
         warm = None
         if early:
             # traced one after the other here (tracing holds the GIL), each compiled in
-            # the background as soon as it is traced (XLA releases it): the solve (the
-            # longest compile) first, then the checks and the diagnostics; then the
-            # checks run, and raise before the solve runs
+            # the background as soon as it is traced (XLA releases it): the checks, the
+            # solve, the diagnostics; then the checks run, and raise before the solve runs
             if not static.progress:
                 _programs.prepare("simulate", _solve_plain,
                                   (system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0,
                                    core, show), error_mode="off",
                                   compiler_options=_programs.SOLVE_OPTIONS)
-            if report_later:
-                _prepare_report(report_args)
             if second:
                 _programs.prepare("diagnose", _saved_eager,
                                   _diagnose_placeholders(system, control, x0, t0a, ts, track, project_saved,
