@@ -175,12 +175,6 @@ def as_matrix(attitude):
     return so3.exp(attitude) if jnp.shape(attitude) == (3,) else jnp.asarray(attitude)
 
 
-def attitude_matrix(attitude, name="attitude", owner=""):
-    """Rotation matrix (top axes -> space) from None (identity), a rotation
-    vector (3,) [rad] or a 3x3 rotation matrix (checked: R^T R = I within 1e-9, det +1)."""
-    return as_matrix(attitude_value(attitude, name, owner))
-
-
 def frame_residual(gamma, alpha, beta):
     """(alpha, beta, gamma) must be the rows of a rotation matrix: Q Q^T - I (upper
     triangle, 6 numbers) and gamma - alpha x beta (orientation)."""
