@@ -271,6 +271,24 @@ def _vec(a):
     return jnp.concatenate([jnp.zeros_like(a[..., :1]), a], axis=-1)
 
 
+# The redundant model's vector algebra is written in elementwise products and sums, not
+# ``@``, ``jnp.dot`` or ``jnp.cross``: XLA's CPU compiler emits every dot_general as a
+# kernel of its own, and jnp.cross's slices and concatenation cut fusions too. The
+# engine differentiates this algebra up to three times (M, A, the KKT right-hand side)
+# in the step of every projected solve, where the dots had doubled the program's
+# kernels and so the compile time of a first simulate() (benchmarks/compile_times.py).
+def _dot(a, b):
+    """a . b along the last axis."""
+    return jnp.sum(a * b, axis=-1)
+
+
+def _cross(a, b):
+    """a x b along the last axis, component by component."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
 class ThreeCylinders(_Common):
     """The three cylinders as three rigid bodies in (u_k, p_k) in R^3 x S^3 ((9.33)-(9.36)):
     state (u_1, p_1, u_2, p_2, u_3, p_3, and their rates), bodies 1, 2 the lower cylinders,
@@ -291,9 +309,21 @@ class ThreeCylinders(_Common):
         return q[7 * k:7 * k + 3], q[7 * k + 3:7 * k + 7]
 
     @staticmethod
+    def bodies(q):
+        """(u, p): the three bodies' positions (3, 3) and quaternions (3, 4), rows k = 0, 1
+        (lower), 2 (upper), from a configuration (21,) (or its rates: (u', p'))."""
+        b = q.reshape(3, 7)
+        return b[:, :3], b[:, 3:]
+
+    @staticmethod
     def spatial_angular_velocity(p, pd):
-        """w = 2 vec(p' conj(p)) [rad/s]."""
-        return 2 * so3.quat_mul(pd, so3.quat_conj(p))[..., 1:]
+        """w = 2 vec(p' conj(p)) = 2 (p_0 p'_v - p'_0 p_v + p_v x p'_v) [rad/s] (p, p' (..., 4))."""
+        return 2 * (p[..., :1] * pd[..., 1:] - pd[..., :1] * p[..., 1:] + _cross(p[..., 1:], pd[..., 1:]))
+
+    @staticmethod
+    def body_angular_velocity(p, pd):
+        """W = 2 vec(conj(p) p') = 2 (p_0 p'_v - p'_0 p_v - p_v x p'_v) [rad/s] (p, p' (..., 4))."""
+        return 2 * (p[..., :1] * pd[..., 1:] - pd[..., :1] * p[..., 1:] - _cross(p[..., 1:], pd[..., 1:]))
 
     def _inertias(self):
         (d1, d2), _ = self.lower_axes()
@@ -304,62 +334,74 @@ class ThreeCylinders(_Common):
         return (self.m_l, lower[0]), (self.m_l, lower[1]), (self.m, upper)
 
     def kinetic_energy(self, q, qd):
-        T = 0.0
-        for k, (mk, Ik) in enumerate(self._inertias()):
-            (_, p), (ud, pd) = self.body(q, k), self.body(qd, k)
-            W = 2 * so3.quat_mul(so3.quat_conj(p), pd)[1:]
-            T = T + 0.5 * mk * ud @ ud + 0.5 * W @ Ik @ W
-        return T
+        # the three bodies at once, in products and sums (see _cross)
+        _, p = self.bodies(q)
+        ud, pd = self.bodies(qd)
+        W = self.body_angular_velocity(p, pd)
+        inertias = self._inertias()
+        m = jnp.stack([mk for mk, _ in inertias])
+        I = jnp.stack([Ik for _, Ik in inertias])  # noqa: E741
+        return 0.5 * jnp.sum(m * _dot(ud, ud)) + 0.5 * jnp.sum(W[:, :, None] * I * W[:, None, :])
 
     def upper_axis(self, q):
-        """e = R(p_3) e1: the upper cylinder's axis direction (3,)."""
-        return so3.quat_rotate(self.body(q, 2)[1], jnp.array([1.0, 0.0, 0.0]))
+        """e = R(p_3) e1 = (p0^2 + p1^2 - p2^2 - p3^2, 2 (p1 p2 + p0 p3), 2 (p1 p3 - p0 p2)):
+        the upper cylinder's axis direction (3,) (for a unit p_3)."""
+        p0, p1, p2, p3 = (q[17 + i] for i in range(4))
+        return jnp.stack([p0 * p0 + p1 * p1 - p2 * p2 - p3 * p3, 2 * (p1 * p2 + p0 * p3), 2 * (p1 * p3 - p0 * p2)])
+
+    def _contact_points(self, q):
+        """(2, 3): z_1, z_2 (see ``contact_points``)."""
+        _, (n1, n2) = self.lower_axes()
+        nh = jnp.stack([n1, n2])[:, :2]
+        u, _ = self.bodies(q)
+        e = self.upper_axis(q)
+        s = _dot(nh, u[:2, :2] - u[2, :2]) / _dot(nh, e[:2])
+        return u[2] + s[:, None] * e - self.r2 * E3
 
     def contact_points(self, q):
         """(z_1, z_2) [m]: where the upper axis's projection crosses the lower axes', at height 2 r1
         (the bodies' own states; the upper's lowest line and the lowers' top lines)."""
-        _, (n1, n2) = self.lower_axes()
-        u3 = self.body(q, 2)[0]
-        e = self.upper_axis(q)
-        out = []
-        for i, ni in enumerate((n1, n2)):
-            ui = self.body(q, i)[0]
-            s = (ni[:2] @ (ui[:2] - u3[:2])) / (ni[:2] @ e[:2])
-            out.append(u3 + s * e - self.r2 * E3)
-        return tuple(out)
+        z = self._contact_points(q)
+        return z[0], z[1]
+
+    def _slips(self, q, qd):
+        """(s, g) (2, 3) each: ``contact_slips``' (s_1, s_2) and (g_1, g_2)."""
+        u, p = self.bodies(q)
+        ud, pd = self.bodies(qd)
+        w = self.spatial_angular_velocity(p, pd)
+        z = self._contact_points(q)
+        upper = ud[2] + _cross(w[2], z - u[2])
+        lower = ud[:2] + _cross(w[:2], z - u[:2])
+        g = ud[:2] + _cross(w[:2], -self.r1 * E3)
+        return upper - lower, g
 
     def contact_slips(self, q, qd):
         """Relative velocities [m/s] (3,) at z_1, z_2 (upper minus lower material point) and the
         velocities of the lower cylinders' material points at the plane: (s_1, s_2, g_1, g_2)."""
-        z = self.contact_points(q)
-        vel = []
-        for k in range(3):
-            (u, p), (ud, pd) = self.body(q, k), self.body(qd, k)
-            vel.append((u, ud, self.spatial_angular_velocity(p, pd)))
-        point = lambda k, x: vel[k][1] + jnp.cross(vel[k][2], x - vel[k][0])  # noqa: E731
-        s = [point(2, z[i]) - point(i, z[i]) for i in range(2)]
-        g = [point(i, vel[i][0] - self.r1 * E3) for i in range(2)]
+        s, g = self._slips(q, qd)
         return s[0], s[1], g[0], g[1]
 
     def position_constraints(self, t, q):
-        (d1, d2), (n1, n2) = self.lower_axes()
-        c = []
-        for i, ni in enumerate((n1, n2)):
-            u, p = self.body(q, i)
-            c += [p @ p - 1.0, p[1:] @ ni, p[3], u[2] - self.r1]
-        u, p = self.body(q, 2)
-        c += [p @ p - 1.0, u[2] - (2 * self.r1 + self.r2), self.upper_axis(q)[2]]
-        return jnp.stack(c)
+        # (|p_i|^2 - 1, vec(p_i) . n_i, p_i3, u_i3 - r1) for i = 1, 2, then
+        # (|p_3|^2 - 1, u_33 - (2 r1 + r2), e . e3)
+        _, (n1, n2) = self.lower_axes()
+        u, p = self.bodies(q)
+        norms = _dot(p, p) - 1.0
+        lower = jnp.stack([norms[:2], _dot(p[:2, 1:], jnp.stack([n1, n2])), p[:2, 3], u[:2, 2] - self.r1], axis=-1)
+        upper = jnp.stack([norms[2], u[2, 2] - (2 * self.r1 + self.r2), self.upper_axis(q)[2]])
+        return jnp.concatenate([lower.reshape(8), upper])
 
     def velocity_constraints(self, t, q, qd):
+        # (g_1 . d_1, g_1 . n_1, g_2 . d_2, g_2 . n_2, s_1[:2], s_2[:2])
         (d1, d2), (n1, n2) = self.lower_axes()
-        s1, s2, g1, g2 = self.contact_slips(q, qd)
-        return jnp.stack([g1 @ d1, g1 @ n1, g2 @ d2, g2 @ n2, s1[0], s1[1], s2[0], s2[1]])
+        s, g = self._slips(q, qd)
+        rolling = jnp.stack([_dot(g, jnp.stack([d1, d2])), _dot(g, jnp.stack([n1, n2]))], axis=-1)
+        return jnp.concatenate([rolling.reshape(4), s[:, :2].reshape(4)])
 
     def guards(self, x):
         _, (n1, n2) = self.lower_axes()
         e = self.upper_axis(x[:21])
-        return {"parallel": jnp.minimum(jnp.abs(n1 @ e), jnp.abs(n2 @ e)) - self.chart_eps}
+        return {"parallel": jnp.minimum(jnp.abs(_dot(n1, e)), jnp.abs(_dot(n2, e))) - self.chart_eps}
 
     # ------------------------------------------------------------ states
     def from_minimal(self, y, yd):
