@@ -516,15 +516,16 @@ def simulate_batch(
         # default only when the system reports no invariant and no constraint of its own
         track_work = (ex_ctrl is not None and _defines_power(ex_sys)
                       and not _reports_accuracy(ex_sys, jtu.tree_map(jnp.asarray, ex_x0), jnp.asarray(t0, float)))
-    # Values a user varies enter the compiled chunk as arrays (new values: no new trace).
-    arr = lambda v: None if v is None else jnp.asarray(v, float)  # noqa: E731
+    # Values a user varies enter the compiled chunk as arrays (new values: no new trace);
+    # numpy ones, since every eager jnp.asarray is a dispatch of its own.
+    arr = lambda v: None if v is None else np.asarray(v, float)  # noqa: E731
     options = dict(
         saveat=saveat if isinstance(saveat, (int, np.integer)) else arr(saveat), solver=solver,
         rtol=arr(rtol), atol=arr(atol), dt0=arr(dt0), max_steps=max_steps,
         stepsize_controller=stepsize_controller, jump_ts=arr(jump_ts), adjoint=adjoint,
         project_steps=project_steps, track_work=track_work, progress=False, diagnostics=diagnostics,
     )
-    t0a, t1a, tol = jnp.asarray(t0, float), jnp.asarray(t1, float), jnp.asarray(constraint_tol, float)
+    t0a, t1a, tol = np.asarray(t0, float), np.asarray(t1, float), np.asarray(constraint_tol, float)
     # Memory: the saved states of the whole batch must fit (ResourceError, a MemoryError).
     n_save = save_times_count(saveat)
     state_bytes = sum(np.asarray(a).size for a in jtu.tree_leaves(ex_x0)) * 8
@@ -631,12 +632,13 @@ def simulate_batch(
         return np.concatenate([p[:n] for p, (_, _, n) in zip(parts, results)])
 
     traj, report = jtu.tree_map(join, *[(r[0], r[1]) for r in results])
-    traj = jax.device_put(traj)
     return _statuses(traj, report, system, axes, on_guard, on_error, float(t0), float(constraint_tol), project)
 
 
 def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol, project):
-    """Per-member statuses and reasons; raises BatchError as on_guard/on_error ask."""
+    """Per-member statuses and reasons from the joined results on the host (``traj``'s
+    leaves numpy arrays); returns them as a ``BatchTrajectory`` of jax arrays, or raises
+    BatchError as on_guard/on_error ask."""
     B = len(report["finite"])
     result = np.asarray(traj.result._value)
     status = np.full(B, OK, np.int8)
@@ -671,6 +673,7 @@ def _statuses(traj, report, system, axes, on_guard, on_error, t0, tol, project):
                            else f"solver failure (diffrax code {int(result[j])})")
     for j in np.nonzero(status == NONFINITE)[0]:
         reasons[int(j)] = "state became NaN/inf"
+    traj = jax.device_put(traj)
     traj = BatchTrajectory(**{f.name: getattr(traj, f.name) for f in dataclasses.fields(Trajectory)}
                            | dict(guard=", ".join(sorted(used)), status=status, reasons=reasons))
     if on_error == "return":
