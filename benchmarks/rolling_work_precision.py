@@ -66,7 +66,6 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import platform
 import sys

@@ -79,10 +79,7 @@ from .. import _programs
 from .. import _validate as V
 from ..mechanics import AbstractSystem
 from .shell_with_top import (
-    _inertia_tensor,
     _is_concrete,
-    _positive,
-    _vector3,
     as_matrix,
     attitude_value,
     frame_residual,
