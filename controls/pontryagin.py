@@ -16,8 +16,10 @@ task here); ``u_star="newton"`` iterates for general H. Box bounds clip u*
 
 Shooting: unknowns z = (p(0), nu); residuals (psi(x(T)), p(T) - dPhi/dx -
 (dpsi/dx)^T nu); solved by Newton or Levenberg–Marquardt on the residual and its
-Jacobian from one forward-mode pass (``_shooting_root``).
-Multiple shooting adds the (x, p) at interior nodes and their continuity.
+Jacobian from one solve (``_shooting_root``): single shooting integrates the
+variational equations beside the extremal, multiple shooting takes one
+forward-mode pass. Multiple shooting adds the (x, p) at interior nodes and their
+continuity.
 ``continuation`` walks a parameter (e.g. the target turn from 0 to pi) with
 warm starts. ``pmp_residual`` checks the optimality conditions of any
 solution, also a direct one, by integrating the costate backwards along it.
@@ -237,9 +239,10 @@ class _LeadingNorm(eqx.Module):
 
 
 @eqx.filter_jit
-def _residual_and_extremal(sh, z):
+def _residual_and_extremal(sh, z, saveat=_EXTREMAL_POINTS):
     """Single shooting's residual r at z, its Jacobian dr/dz, and the extremal it comes
-    from (``_extremal``'s solve, saved points and steps): one solve for all three. The
+    from (``_extremal``'s solve and steps, saved at ``saveat`` points: 2 when only r and
+    its Jacobian are wanted): one solve for all three. The
     Jacobian comes from the variational equations integrated alongside
     (``_ExtremalSensitivity``; the error norm on (x, p, J) alone, so the steps are the
     extremal's): the derivative of the discrete flow at those steps (internal
@@ -254,7 +257,7 @@ def _residual_and_extremal(sh, z):
     phi0 = jnp.concatenate([jnp.zeros((n, n)), jnp.eye(n)])  # d(x0, p0)/dp0
     y0 = jnp.concatenate([ocp.x0, z[:n], jnp.zeros(1), phi0.reshape(-1)])
     controller = diffrax.PIDController(rtol=sh.rtol, atol=sh.atol, norm=_LeadingNorm(2 * n + 1))
-    tr = nhjax.simulate(_ExtremalSensitivity(sh.ham), y0, ocp.T, saveat=_EXTREMAL_POINTS, track_work=False,
+    tr = nhjax.simulate(_ExtremalSensitivity(sh.ham), y0, ocp.T, saveat=saveat, track_work=False,
                         diagnostics=False, stepsize_controller=controller)
     yT = tr.xs[-1]
     r, (dr_dxp, dr_dnu) = (_terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:]),
@@ -295,10 +298,13 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
     and saves the extremal, and the loop keeps the one of its last accepted point, so
     that the answer needs no solve of its own.
 
-    Each iteration evaluates r and its Jacobian once, at the point it tries: with
-    ``extremal`` by that solve, else in one forward-mode pass (``_value_and_jacobian``,
-    the exact derivative of the solve, step-size control included); the compiled loop
-    holds one copy of the extremal's ODE solve. (optimistix's Newton and Levenberg–Marquardt evaluate
+    Each iteration evaluates r and its Jacobian once, at the point it tries: in single
+    shooting from the variational equations integrated beside the extremal
+    (``_residual_and_extremal``; with ``extremal`` that solve also saves the path, else
+    only its ends), in multiple shooting in one forward-mode pass
+    (``_value_and_jacobian``: the solves once, beside their batched tangents). Both give
+    the derivative of the discrete flow at the solve's steps; the compiled loop holds
+    one copy of the extremal's ODE solve. (optimistix's Newton and Levenberg–Marquardt evaluate
     r and build its Jacobian operator separately, three copies of the solve in one
     program: about twice the time to trace and compile, and the time to a first
     answer is mostly that.) The first iteration evaluates at z0 itself.
@@ -322,6 +328,12 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
         values_and_jacobian = functools.partial(_residual_and_extremal, shooting)
         # (the outputs' shapes: a trace that the loop's call of the nested jit reuses)
         aux0 = jtu.tree_map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(values_and_jacobian, z0)[2])
+    elif isinstance(shooting, _Shooting) and shooting.segments == 1:
+        def values_and_jacobian(y):
+            r, jac, _ = _residual_and_extremal(shooting, y, saveat=2)
+            return r, jac, ()
+
+        aux0 = ()
     else:
         def values_and_jacobian(y):
             return _value_and_jacobian(y, lambda y: (shooting.residual(y), ()))
