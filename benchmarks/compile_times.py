@@ -109,6 +109,66 @@ X = np.stack([rng.uniform(0.6, 1.4, 256), rng.uniform(-1, 1, 256), np.zeros(256)
               rng.uniform(-0.5, 0.5, 256)], 1)""",
 }
 
+PATH_CASES = {
+    # every other public path a notebook user takes, each from its first call: gradients
+    # around simulate (reverse and forward mode, on simulate's defaults), impacts and their
+    # derivatives and batches, the reduction geometry; ``call`` is what is timed
+    "jax.grad through simulate (FallingCat, defaults)": """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
+import jax.numpy as jnp
+def loss(amp):
+    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
+    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
+amp = jnp.array([0.04, 0.02])
+call = lambda: jax.grad(loss)(amp)""",
+    "jax.jacfwd through simulate (FallingCat, defaults)": """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
+import jax.numpy as jnp
+def loss(amp):
+    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
+    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
+amp = jnp.array([0.04, 0.02])
+call = lambda: jax.jacfwd(loss)(amp)""",
+    "jax.grad through simulate (DiscreteAdjoint)": """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
+import jax.numpy as jnp
+def loss(amp):
+    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
+    return nhjax.simulate(system, x0, 10.0, control=u, adjoint=nhjax.DiscreteAdjoint()).xs[-1, 2]
+amp = jnp.array([0.04, 0.02])
+call = lambda: jax.grad(loss)(amp)""",
+    "simulate_impacts (BouncingBall, 2 s)": """
+system = S.BouncingBall(); x0 = system.initial_state(0.1)
+call = lambda: nhjax.simulate_impacts(system, x0, 2.0)""",
+    "jax.jacfwd of the first impact time": """
+import jax.numpy as jnp
+system = S.BouncingBall()
+first = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8).impact_times[0]
+call = lambda: jax.jacfwd(first)(0.1)""",
+    "jax.grad of the first impact time (adjoint='reverse')": """
+import jax.numpy as jnp
+system = S.BouncingBall()
+first = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8,
+                                         adjoint="reverse").impact_times[0]
+call = lambda: jax.grad(first)(0.1)""",
+    "simulate_batch of 64 bouncing balls": """
+system = S.BouncingBall(); X = np.stack([np.linspace(0.05, 0.2, 64), np.zeros(64)], 1)
+call = lambda: nhjax.simulate_batch(system, X, 2.0)""",
+    "PlanarChain under torques, then body_states": """
+import jax.numpy as jnp
+system = S.PlanarChain(); x0 = system.initial_state(phi=[0.3, -0.2])
+u = nhjax.Sinusoids(jnp.zeros(2), jnp.array([0.2, -0.1]), jnp.array([1.0, 1.5]), jnp.zeros(2))
+def call():
+    tr = nhjax.simulate(system, x0, 5.0, control=u)
+    return system.body_states(tr.xs[-1])""",
+    "curvature_integral of a 3-link chain gait": """
+import jax.numpy as jnp
+from nhjax.mechanics import curvature_integral
+from nhjax.mechanics.reduction import EllipseLoop
+system = S.PlanarChain(momentum="zero").kinematic(); c = jnp.array([1.0, 0.8])
+call = lambda: curvature_integral(system, EllipseLoop(c, 0.5, 0.3), c)""",
+}
+
 CHILD = """
 import time, json
 t_import = time.perf_counter()
@@ -119,28 +179,31 @@ t_import = time.perf_counter() - t_import
 control = None
 t_state = time.perf_counter()
 {case}
-jax.block_until_ready(X if "X" in globals() else x0)
+jax.block_until_ready(X if "X" in globals() else x0 if "x0" in globals() else 0)
 t_state = time.perf_counter() - t_state
-if "X" in globals():  # a batch case
+if "call" in globals():  # a path: its own call
+    pass
+elif "X" in globals():  # a batch case
     call = lambda: nhjax.simulate_batch(system, X, t1, control=control, on_error="return")
 else:
     call = lambda: nhjax.simulate(system, x0, t1, control=control)
 t = time.perf_counter()
 tr = call()
-jax.block_until_ready(tr.xs)
+jax.block_until_ready(tr)
 first = time.perf_counter() - t
 runs = []
 for _ in range(5):
     t = time.perf_counter()
-    jax.block_until_ready(call().xs)
+    jax.block_until_ready(call())
     runs.append(time.perf_counter() - t)
+steps = int(np.max(tr.num_accepted_steps)) if hasattr(tr, "num_accepted_steps") else -1
 print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s=t_import, state_s=t_state,
-                      steps=int(np.max(tr.num_accepted_steps)), t1=float(t1))))
+                      steps=steps, t1=float(globals().get("t1", float("nan"))))))
 """
 
 
 def _child(name: str, cache_dir: str) -> dict:
-    out = subprocess.run([sys.executable, "-c", CHILD.format(case={**CASES, **BATCH_CASES}[name])], capture_output=True,
+    out = subprocess.run([sys.executable, "-c", CHILD.format(case={**CASES, **BATCH_CASES, **PATH_CASES}[name])], capture_output=True,
                          text=True, env=dict(os.environ, NHJAX_CACHE_DIR=cache_dir))
     if out.returncode != 0:
         return dict(error=out.stderr.strip().splitlines()[-1])
@@ -203,21 +266,25 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     load_start = os.getloadavg()
     rows = []
-    print(f"{'scene':42s} {'cold s':>7s} {'(slowest)':>9s} {'warm s':>7s} {'run ms':>9s} {'steps':>6s} "
-          f"{'x0 cold/warm s':>15s}")
-    names = sys.argv[1:] or [*CASES, *BATCH_CASES]
-    unknown = sorted(set(names) - set(CASES) - set(BATCH_CASES))
+    print(f"{'scene or path':52s} {'cold s':>7s} {'(slowest)':>9s} {'warm s':>7s} {'run ms':>9s} {'steps':>6s} "
+          f"{'x0 cold/warm s':>15s} {'load':>10s}")
+    names = sys.argv[1:] or [*CASES, *BATCH_CASES, *PATH_CASES]
+    known = [*CASES, *BATCH_CASES, *PATH_CASES]
+    unknown = sorted(set(names) - set(known))
     if unknown:
-        raise SystemExit(f"unknown cases {unknown}; known: {[*CASES, *BATCH_CASES]}")
+        raise SystemExit(f"unknown cases {unknown}; known: {known}")
     for name in names:
+        load = os.getloadavg()[0]
         r = measure(name)
+        r["load_average"] = [load, os.getloadavg()[0]]
         rows.append(r)
         if "error" in r:
-            print(f"{name:42s} failed: {r['error']}")
+            print(f"{name:52s} failed: {r['error']}")
             continue
         r["compile_s"] = r["first_call_s"] - r["run_s"]
-        print(f"{name:42s} {r['first_call_s']:7.2f} {max(r['cold_runs_s']):9.2f} {r['warm_first_call_s']:7.2f} "
-              f"{r['run_s'] * 1e3:9.2f} {r['steps']:6d} {r['state_s']:7.2f}/{r['warm_state_s']:.2f}", flush=True)
+        print(f"{name:52s} {r['first_call_s']:7.2f} {max(r['cold_runs_s']):9.2f} {r['warm_first_call_s']:7.2f} "
+              f"{r['run_s'] * 1e3:9.2f} {r['steps']:6d} {r['state_s']:7.2f}/{r['warm_state_s']:.2f} "
+              f"{r['load_average'][0]:5.2f}-{r['load_average'][1]:.2f}", flush=True)
     load_end = os.getloadavg()
     ok = [r for r in rows if "error" not in r]
     print(f"cold under 3 s: {sum(r['first_call_s'] < 3 for r in ok)} of {len(ok)}; warm under 0.5 s: "

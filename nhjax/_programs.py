@@ -167,11 +167,11 @@ class _Fingerprint:
         if obj is None or isinstance(obj, (bool, int, float, complex, str, bytes)):
             return f"{type(obj).__name__}:{obj!r}"
         if isinstance(obj, (jax.Array, np.ndarray, np.generic)) or isinstance(obj, jax.ShapeDtypeStruct):
+            head = f"array({np.dtype(obj.dtype).str}{tuple(obj.shape)}"
+            if id(obj) in self.dynamic or isinstance(obj, jax.ShapeDtypeStruct):
+                return head + ")"  # an input of the program (a tracer too): its shape counts
             if isinstance(obj, jax.core.Tracer):
                 raise Uncacheable("traced value")
-            head = f"array({np.dtype(obj.dtype).str}{tuple(np.shape(obj))}"
-            if id(obj) in self.dynamic or isinstance(obj, jax.ShapeDtypeStruct):
-                return head + ")"
             return head + ":" + hashlib.sha256(np.ascontiguousarray(np.asarray(obj)).tobytes()).hexdigest() + ")"
         key = id(obj)
         if key in self.seen:  # cycles, shared objects
@@ -269,6 +269,48 @@ def _error_mode() -> str:
     return str(getattr(_errors, "EQX_ON_ERROR", "?"))
 
 
+_ERROR_MODE_LOCK = threading.RLock()
+
+
+@contextlib.contextmanager
+def error_checks(on: bool):
+    """equinox's runtime errors as configured (on) or off while a solve is traced.
+    (equinox reads its EQX_ON_ERROR setting from this module global at trace time; the
+    lock keeps two threads that trace at once -- the eager solve and its diagnostics --
+    from restoring each other's setting.)"""
+    from equinox import _errors
+
+    if on or not hasattr(_errors, "EQX_ON_ERROR"):
+        yield
+        return
+    with _ERROR_MODE_LOCK:
+        old = _errors.EQX_ON_ERROR
+        _errors.EQX_ON_ERROR = "off"
+        # equinox formats the whole Python stack for every check it traces, also when the
+        # mode makes the check nothing (the solver's own checks here): checks made in the
+        # "off" mode meanwhile return their input at once, which is what equinox returns
+        impl = getattr(_errors, "branched_error_if_impl_jit", None)
+        if impl is not None:
+            _errors.branched_error_if_impl_jit = functools.partial(_off_checks, impl)
+        try:
+            yield
+        finally:
+            _errors.EQX_ON_ERROR = old
+            if impl is not None:
+                _errors.branched_error_if_impl_jit = impl
+
+
+def _off_checks(impl, x, pred, index, msgs, *, on_error):
+    """equinox's branched_error_if_impl_jit (``impl``) for ``_error_checks``: a traced
+    check in the "off" mode is its input, without equinox's reading of the stack."""
+    from equinox import _errors
+
+    mode = _errors.EQX_ON_ERROR if on_error == "default" else on_error
+    if mode == "off" and isinstance(pred, jax.core.Tracer):
+        return x
+    return impl(x, pred, index, msgs, on_error=on_error)
+
+
 def fingerprint(*objs, error_mode: str | None = None) -> str:
     """The cache key of a call on ``objs`` (raises Uncacheable when it cannot be made).
     ``error_mode``: equinox's error mode the function sets for itself while it is traced
@@ -355,6 +397,106 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
         if quick is not None:
             _MEMORY[quick] = program
     return None if program is _FAILED else program
+
+
+# ------------------------------------------------------------------ programs by key
+# The primitive of ``nhjax._primitive`` names its programs (a call's, and those derived
+# from it: derivatives, batches) by key, and reaches them here.
+_EXPORTED: dict[str, Any] = {}
+
+
+def keyed_out_def(key: str):
+    """The output structure of the program stored under ``key`` (in memory or on disk),
+    or None."""
+    program = _keyed_program(key)
+    return None if program is None else program[1]
+
+
+def _keyed_program(key: str):
+    with _LOCK:
+        program = _EXPORTED.get(key)
+    if program is None:
+        folder = directory()
+        program = _load(folder / f"{key}.prog") if folder is not None else None
+        if program is not None:
+            with _LOCK:
+                _EXPORTED[key] = program
+    return None if program is _FAILED else program
+
+
+def keyed_exported(key: str, flat_fn: Callable, specs, out_box: dict | None = None):
+    """The ``jax.export.Exported`` of ``flat_fn`` (a function of a flat list of arrays
+    returning a flat list) on ``specs``, from memory, disk or exported now and stored;
+    None when export refuses it. ``out_box``: filled by ``flat_fn`` with its output
+    structure when traced (default: the flat list)."""
+    program = _keyed_program(key)
+    if program is None:
+        with _LOCK:
+            if _EXPORTED.get(key) is _FAILED:
+                return None
+        folder = directory()
+        program = _export_flat(flat_fn, specs, None if folder is None else folder / f"{key}.prog", out_box)
+        with _LOCK:
+            _EXPORTED[key] = program
+        if program is _FAILED:
+            return None
+    return program[0]
+
+
+def keyed_executable(key: str, flat_fn: Callable, specs, options: dict | None = None):
+    """A callable running the program stored under ``key`` on flat arrays (returning a
+    flat list): its executable from memory or disk, or ``keyed_exported`` compiled with
+    ``options`` and stored; None when export refuses it."""
+    options = dict(options or {})
+    mem = ("exe", key, tuple(sorted(options.items())))
+    with _LOCK:
+        program = _MEMORY.get(mem)
+    if program is None:
+        folder = directory()
+        suffix = "" if not options else "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
+        exe_path = None if folder is None else folder / f"{key}{suffix}-{_machine()}.exe"
+        program = _load_executable(exe_path) if exe_path is not None else None
+        if program is None:
+            exported = keyed_exported(key, flat_fn, specs)
+            if exported is None:
+                return None
+            program = _compile((exported, _keyed_program(key)[1]), specs, options, exe_path)
+        with _LOCK:
+            _MEMORY[mem] = program
+    exe = program[0]
+    return lambda *a: exe(*a)
+
+
+def _export_flat(flat_fn, specs, path: Path | None, out_box: dict | None = None):
+    """``flat_fn`` exported on ``specs`` and stored at ``path``: (exported, out treedef),
+    or ``_FAILED``."""
+    box = out_box if out_box is not None else {}
+    specs = list(specs)
+
+    def traced(*lv):
+        out = flat_fn(*lv)
+        if out_box is None:
+            box["out_def"] = jtu.tree_structure(list(out))
+        return out
+
+    try:
+        with _gc_paused():
+            exported = jax.export.export(jax.jit(traced))(*specs)
+    except Exception:  # noqa: BLE001 - the plain path re-raises a user's own error
+        if os.environ.get("NHJAX_DEBUG_PROGRAMS"):  # why a program is traced in every process
+            import traceback
+
+            traceback.print_exc()
+        STATS["uncacheable"] += 1
+        return _FAILED
+    out_def = box["out_def"]
+    if path is not None and _portable(out_def):
+        try:
+            _store(path, pickle.dumps((out_def, bytes(exported.serialize()))))
+            STATS["stored"] += 1
+        except (OSError, pickle.PicklingError, TypeError, ImportError):
+            pass  # read-only cache: keep it in memory
+    return exported, out_def
 
 
 def _load_or_raise(path: Path):

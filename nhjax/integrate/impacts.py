@@ -84,6 +84,7 @@ any system whose T and V do not depend on time.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import diffrax
 import equinox as eqx
@@ -92,6 +93,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _primitive, _programs
 from .._validate import check_saveat, choice, in_range, integer, solver_settings, time_span
 from ..errors import ConstraintViolationError, IntegrationError, ParameterError, StateError
 from ..mechanics.impacts import (
@@ -209,7 +211,38 @@ def _num_contacts(system, t0, x0):
             "unilateral_constraints(t, q) -> gaps (admissible where >= 0), or wrap it: "
             "nhjax.mechanics.WithContacts(system, psi, restitution)"
         )
-    return jnp.atleast_1d(system.unilateral_constraints(t0, x0[: system.n])).shape[0]
+    psi = jax.eval_shape(lambda t, x: jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n])),
+                         jnp.asarray(t0, float), x0)
+    return psi.shape[0]
+
+
+def _start_residuals(system, x0, t0):
+    """(psi(t0, q0), the permanent constraints' velocity residual at x0): what
+    ``simulate_impacts`` checks of a start (one stored program, not eager operations)."""
+    q0, qd0 = x0[: system.n], x0[system.n:]
+    return (jnp.atleast_1d(system.unilateral_constraints(t0, q0)),
+            jnp.atleast_1d(system._all_velocity_constraints(t0, q0, qd0)))
+
+
+#: ImpactTrajectory's array fields (what the stored program returns)
+_FIELDS = tuple(f.name for f in dataclasses.fields(ImpactTrajectory) if f.name not in ("n", "state_names"))
+
+
+def _solve_plain(system, x0, t1, t0, ts, solver, rtol, atol, dt0, dtmax, max_steps, max_impacts, rest_velocity,
+                 graze_tol, release_tol, event_samples, adjoint):
+    """``solve_impacts`` with positional arguments, its arrays in a dict (the stored
+    program of ``simulate_impacts``)."""
+    tr = solve_impacts(system, x0, t1, t0=t0, ts=ts, solver=solver, rtol=rtol, atol=atol, dt0=dt0, dtmax=dtmax,
+                       max_steps=max_steps, max_impacts=max_impacts, rest_velocity=rest_velocity,
+                       graze_tol=graze_tol, release_tol=release_tol, event_samples=event_samples,
+                       adjoint=adjoint)
+    return {k: getattr(tr, k) for k in _FIELDS}
+
+
+def _with_adjoint(adjoint, args, nz=None):
+    """``_solve_plain``'s arguments with another adjoint (the same values): "forward" for
+    jax.jvp / jax.jacfwd, "reverse" for jax.grad / jax.jacrev."""
+    return (*args[:-1], adjoint)
 
 
 def _ulp(t):
@@ -691,6 +724,7 @@ def _concrete(*trees) -> bool:
 
 
 _solve_jit = eqx.filter_jit(solve_impacts)
+_solve_plain_jit = eqx.filter_jit(_solve_plain)
 
 
 def _with_contacts(system, unilateral, restitution):
@@ -795,21 +829,24 @@ def simulate_impacts(
         raise StateError(f"{owner}: x0 has shape {x0.shape}; {type(system).__name__} expects (q, q') of shape "
                          f"({2 * n},): pass the positions and then the velocities", "x0")
     k = _num_contacts(system, t0, x0)
-    concrete = _concrete(system, x0, t0, t1)
-    if concrete:
-        in_range("restitution", restitution_of(system, k), 0.0, 1.0, owner=owner,
+    # known values (concrete, or under jax.grad / jax.jvp of concrete values): checked here,
+    # and the solve and its derivatives are stored programs (nhjax._primitive)
+    known = _primitive.has_values(system, x0, t0, t1)
+    if known:
+        csys, cx0, ct0 = _primitive.concrete((system, x0, t0))
+        in_range("restitution", restitution_of(csys, k), 0.0, 1.0, owner=owner,
                  what="coefficient of restitution of every contact")
-        if not np.all(np.isfinite(np.asarray(x0))):
+        if not np.all(np.isfinite(np.asarray(cx0))):
             raise StateError(f"{owner}: initial state x0 contains NaN or inf; pass finite numbers", "x0")
-        q0, qd0 = x0[:n], x0[n:]
-        psi0 = np.asarray(system.unilateral_constraints(jnp.asarray(t0, float), q0))
+        psi0, res = _programs.call("impacts-start", _start_residuals, (csys, cx0, jnp.asarray(ct0, float)),
+                                   compiler_options=_programs.QUICK_OPTIONS)
+        psi0, res = np.asarray(psi0), np.asarray(res)
         if np.any(psi0 < -constraint_tol):
             a = int(np.argmin(psi0))
             raise ConstraintViolationError(
                 f"unilateral[{a}]", float(-psi0[a]), constraint_tol,
                 "the initial configuration is on the forbidden side psi < 0",
             )
-        res = np.asarray(system._all_velocity_constraints(jnp.asarray(t0, float), q0, qd0))
         if res.size and np.max(np.abs(res)) > constraint_tol:
             raise ConstraintViolationError("permanent", float(np.max(np.abs(res))), constraint_tol)
     if saveat is None:
@@ -818,19 +855,28 @@ def simulate_impacts(
         ts = None  # no saved times
     else:
         check_saveat(saveat, t0, t1, owner=owner)
-        if isinstance(saveat, (int, np.integer)):
+        if isinstance(saveat, (int, np.integer)) and _concrete(t0, t1):
+            ts = jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)), float)  # no program of its own
+        elif isinstance(saveat, (int, np.integer)):
             ts = jnp.linspace(t0, t1, int(saveat))
         else:
             ts = jnp.asarray(saveat, float)
     if dtmax is None:
         dtmax = getattr(system, "event_resolution", None)
     arr = lambda v: None if v is None else jnp.asarray(v, float)  # noqa: E731 (no recompiles)
-    traj = _solve_jit(
-        system, x0, arr(t1), t0=arr(t0), ts=ts, solver=solver, rtol=arr(rtol), atol=arr(atol),
-        dt0=arr(dt0), dtmax=arr(dtmax), max_steps=int(max_steps), max_impacts=int(max_impacts),
-        rest_velocity=arr(rest_velocity), graze_tol=arr(graze_tol), release_tol=arr(release_tol),
-        event_samples=int(event_samples), adjoint=adjoint,
-    )
+    args = (system, x0, arr(t1), arr(t0), ts, solver, arr(rtol), arr(atol), arr(dt0), arr(dtmax), int(max_steps),
+            int(max_impacts), arr(rest_velocity), arr(graze_tol), arr(release_tol), int(event_samples), adjoint)
+    if known:
+        out = _primitive.call("impacts", _solve_plain, args, forward=functools.partial(_with_adjoint, "forward"),
+                              reverse=functools.partial(_with_adjoint, "reverse"),
+                              fallback=lambda *a: _solve_plain_jit(*a))
+        traj = ImpactTrajectory(**out, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()))
+    else:
+        traj = _solve_jit(
+            system, x0, args[2], t0=args[3], ts=ts, solver=solver, rtol=args[6], atol=args[7], dt0=args[8],
+            dtmax=args[9], max_steps=int(max_steps), max_impacts=int(max_impacts), rest_velocity=args[12],
+            graze_tol=args[13], release_tol=args[14], event_samples=int(event_samples), adjoint=adjoint,
+        )
     fatal = (2, 3, 4) if on_max_impacts == "stop" else (1, 2, 3, 4)
     if not _concrete(traj.status):
         bad = jnp.isin(traj.status, jnp.asarray(fatal))
@@ -850,8 +896,7 @@ def _member_of(tree, axes, idx):
                                   is_leaf=lambda a: a is None)
 
 
-@eqx.filter_jit
-def _lockstep_chunk(system, x0, t1, n_members, sys_axes, x_axis, options, lanes):
+def _lockstep_chunk_impl(system, x0, t1, n_members, sys_axes, x_axis, options, lanes):
     """Members ``0 .. n_members - 1`` of ``system`` / ``x0`` (member axis 0 where
     ``sys_axes`` / ``x_axis`` say 0; size M = the chunk's capacity) by a lock-step loop:
     ``lanes`` members step together (``_machine``'s body vmapped over the lanes, every lane
@@ -971,6 +1016,25 @@ def _lockstep_chunk(system, x0, t1, n_members, sys_axes, x_axis, options, lanes)
     return mc0["finish"](out, rec)
 
 
+_lockstep_chunk_jit = eqx.filter_jit(_lockstep_chunk_impl)
+
+
+def _lockstep_chunk_plain(*args):
+    tr = _lockstep_chunk_impl(*args)
+    return {k: getattr(tr, k) for k in _FIELDS}
+
+
+def _lockstep_chunk(*args):
+    """``_lockstep_chunk_impl`` as a stored program (a new process loads it, traces nothing)."""
+    out = _programs.call("impacts-batch", _lockstep_chunk_plain, args,
+                         fallback=lambda *a: _lockstep_chunk_plain_jit(*a))
+    system = args[0]
+    return ImpactTrajectory(**out, n=system.n, state_names=tuple(getattr(system, "state_names", ()) or ()))
+
+
+_lockstep_chunk_plain_jit = eqx.filter_jit(_lockstep_chunk_plain)
+
+
 def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lanes: int = 16, workers=None,
                            saveat=0, **options) -> ImpactTrajectory:
     """Many impact solves at once, by a lock-step loop with a member queue.
@@ -1039,7 +1103,8 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
                              "(check in_axes: which of system / x0 carry a leading member axis)", "in_axes", in_axes)
     B = sizes.pop()
     if isinstance(saveat, (int, np.integer)):
-        ts = None if saveat == 0 else jnp.linspace(options.get("t0", 0.0), t1, int(saveat))
+        ts = None if saveat == 0 else jnp.asarray(np.linspace(float(options.get("t0", 0.0)), float(t1), int(saveat)),
+                                                  float)
     else:
         ts = jnp.asarray(saveat, float)
     if "dtmax" not in options:

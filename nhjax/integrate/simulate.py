@@ -21,9 +21,7 @@ become ``equinox.error_if`` runtime errors (same wording, without the time).
 from __future__ import annotations
 
 import collections
-import contextlib
 import functools
-import threading
 import dataclasses
 from typing import Any
 
@@ -35,7 +33,7 @@ import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
 
-from .. import _programs
+from .. import _primitive, _programs
 from .._validate import (
     check_control,
     check_saveat,
@@ -488,15 +486,42 @@ def _solve_plain(*args):
     return _to_plain(_solve_impl(*args))
 
 
-def _solve_cached(*args):
-    """An eager solve through nhjax's program cache (``nhjax._programs``): a new process
-    whose program is on disk does not trace it again."""
+def _solve_cached(*args, adjoint_given=True, on_guard="raise"):
+    """A solve on known values (concrete, or under ``jax.grad``/``jax.jvp`` of concrete
+    values) through nhjax's stored programs (``nhjax._primitive``): a new process whose
+    programs are on disk does not trace them again, nor their derivatives."""
     static = args[10]
     if static.progress:  # a host callback in the loop: jax.export cannot keep that program
         return _solve(*args)
     mode = None if static.runtime_checks else "off"  # _solve_impl traces with checks off
-    return _from_plain(_programs.call("simulate", _solve_plain, args, error_mode=mode,
-                                     compiler_options=_programs.SOLVE_OPTIONS), static.state_names)
+    return _from_plain(_primitive.call("simulate", _solve_plain, args, error_mode=mode,
+                                       options=_programs.SOLVE_OPTIONS, forward=_forward_variant,
+                                       reverse=functools.partial(_reverse_variant, adjoint_given, on_guard),
+                                       variant_key=(adjoint_given, on_guard),
+                                       fallback=lambda *a: _to_plain(_solve(*a))),
+                       static.state_names)
+
+
+def _forward_variant(args):
+    """The solve set up for forward mode (jax.jvp, jax.jacfwd): diffrax's ForwardMode,
+    whose plain while loop JAX pushes tangents through (the adjoints differentiate in
+    reverse mode only). The same steps and values."""
+    return (*args[:8], diffrax.ForwardMode(), *args[9:])
+
+
+def _reverse_variant(adjoint_given, on_guard, args, nz):
+    """The solve set up for reverse mode (jax.grad, jax.vjp, jax.jacrev). With the default
+    adjoint: ``DiscreteAdjoint`` (the exact derivative of the same discrete solution at a
+    few forward solves, where differentiating diffrax's loop costs a hundred or more)
+    whenever it applies: an explicit solver, times and save times not differentiated, no
+    chart guard that may stop the solve (whose event time it holds fixed)."""
+    adjoint, solver = args[8], args[6]
+    if adjoint_given or not isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
+        return args
+    times = any(jtu.tree_leaves((nz[3], nz[4], nz[5], nz[9])))
+    if times or not _is_explicit(solver) or (on_guard == "stop" and args[10].guard_names):
+        return args
+    return (*args[:8], DiscreteAdjoint(max_steps=args[10].max_steps), *args[9:])
 
 
 def _saved_eager(system, control, x0, t0, ts, xs, t_final, x_end, work, track, project, diagnostics):
@@ -513,46 +538,7 @@ def _saved_eager(system, control, x0, t0, ts, xs, t_final, x_end, work, track, p
                            else None)
 
 
-_ERROR_MODE_LOCK = threading.RLock()
-
-
-@contextlib.contextmanager
-def _error_checks(on: bool):
-    """equinox's runtime errors as configured (on) or off while a solve is traced.
-    (equinox reads its EQX_ON_ERROR setting from this module global at trace time; the
-    lock keeps two threads that trace at once -- the eager solve and its diagnostics --
-    from restoring each other's setting.)"""
-    from equinox import _errors
-
-    if on or not hasattr(_errors, "EQX_ON_ERROR"):
-        yield
-        return
-    with _ERROR_MODE_LOCK:
-        old = _errors.EQX_ON_ERROR
-        _errors.EQX_ON_ERROR = "off"
-        # equinox formats the whole Python stack for every check it traces, also when the
-        # mode makes the check nothing (the solver's own checks here): checks made in the
-        # "off" mode meanwhile return their input at once, which is what equinox returns
-        impl = getattr(_errors, "branched_error_if_impl_jit", None)
-        if impl is not None:
-            _errors.branched_error_if_impl_jit = functools.partial(_off_checks, impl)
-        try:
-            yield
-        finally:
-            _errors.EQX_ON_ERROR = old
-            if impl is not None:
-                _errors.branched_error_if_impl_jit = impl
-
-
-def _off_checks(impl, x, pred, index, msgs, *, on_error):
-    """equinox's branched_error_if_impl_jit (``impl``) for ``_error_checks``: a traced
-    check in the "off" mode is its input, without equinox's reading of the stack."""
-    from equinox import _errors
-
-    mode = _errors.EQX_ON_ERROR if on_error == "default" else on_error
-    if mode == "off" and isinstance(pred, jax.core.Tracer):
-        return x
-    return impl(x, pred, index, msgs, on_error=on_error)
+_error_checks = _programs.error_checks
 
 
 def _save_times(saveat, t0, t1, runtime_errors=False):
@@ -760,11 +746,19 @@ def simulate(
         Default 100 000, or ``DiscreteAdjoint.max_steps`` (4096) with that adjoint,
         whose differentiated solves store max_steps states.
     jump_ts : times at which the vector field is not smooth (steps land there).
-    adjoint : how simulate() is differentiated: ``nhjax.DiscreteAdjoint()`` (reverse
-        mode by the discrete adjoint of the Runge-Kutta steps: same gradient as the
-        default at a fraction of its cost, explicit solvers only), a diffrax adjoint
-        (default ``diffrax.RecursiveCheckpointAdjoint()``: differentiates diffrax's
-        loop itself), or ``diffrax.ForwardMode()`` for jvp/jacfwd.
+    adjoint : how reverse mode (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) differentiates
+        the solve: ``nhjax.DiscreteAdjoint()`` (the discrete adjoint of the
+        Runge-Kutta steps: the same gradient as differentiating diffrax's loop, at a
+        few forward solves; explicit solvers only), or a diffrax adjoint. Default
+        (None): ``DiscreteAdjoint`` wherever it applies (an explicit solver, t0, t1,
+        saveat and dt0 not differentiated, no chart guard that may stop the solve),
+        else ``diffrax.RecursiveCheckpointAdjoint()``. Forward mode (``jax.jvp``,
+        ``jax.jacfwd``) works whatever the adjoint: it runs the solve set up with
+        ``diffrax.ForwardMode()``, the same steps and values. This holds for calls on
+        known values, eager or under ``jax.grad`` and the like (see below); under
+        ``jax.jit`` or ``jax.vmap`` the solve is traced with the adjoint as given
+        (default ``RecursiveCheckpointAdjoint``; pass ``diffrax.ForwardMode()`` for
+        forward mode there).
     project : project x0 onto the constraint manifold instead of rejecting it.
     project_steps : project the state onto the constraint manifold after every
         step (``ProjectedSolver``), and the saved and final states too; removes the
@@ -814,6 +808,19 @@ def simulate(
     ``jax.jit`` the solve is part of the caller's program and compiled with the
     caller's settings, so the last bits of its results may differ from an eager
     call's.
+
+    Stored programs. The programs of an eager call are kept on disk
+    (``NHJAX_CACHE_DIR``): a new process neither traces nor compiles them again. The
+    same holds under ``jax.grad``, ``jax.vjp``, ``jax.jacrev``, ``jax.jvp``,
+    ``jax.jacfwd`` and ``jax.linearize`` of a function around ``simulate`` called on
+    concrete values: the values are checked as in an eager call (the named errors,
+    with the time), and the solve's derivative programs (forward mode; reverse mode's
+    forward pass with its residuals, and its backward pass) are stored too
+    (``nhjax._primitive``). Under ``jax.jit`` or ``jax.vmap`` the call is traced into
+    the caller's program: its checks are then runtime errors (host callbacks), which
+    JAX's persistent cache does not keep, so such a program is compiled in every new
+    process. With ``progress=True`` the loop holds a host callback too and is traced
+    as usual.
     """
     choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
     if not isinstance(system, AbstractSystem):
@@ -826,18 +833,24 @@ def simulate(
     t0, t1 = time_span(t0, t1, owner="simulate", runtime=False)
     check_saveat(saveat, t0, t1, owner="simulate")
     # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
-    traced = _is_traced(x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
+    numbers = (x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
+    differentiated = _is_traced(numbers)
+    # under jax.grad / jax.jvp of concrete values the values are known: checked as in an
+    # eager call, and the solve and its derivatives are stored programs (nhjax._primitive);
+    # only under jit or vmap is the call traced
+    traced = differentiated and not _primitive.has_values(numbers)
     try:
         x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
     except (TypeError, ValueError) as e:
         raise StateError(f"simulate: x0 must be an array (or a pytree of arrays) of real numbers: {e}") from None
-    simulate_memory(system, x0, saveat, stores_steps=traced and isinstance(adjoint, DiscreteAdjoint),
+    simulate_memory(system, x0, saveat, stores_steps=differentiated and isinstance(adjoint, DiscreteAdjoint),
                     max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
     # An eager call with the program cache on starts every program it needs before it
     # runs any (see _start_checks); otherwise the checks run first, as a program of their own.
     early = not traced and _programs.directory() is not None
     if early:
-        report_args, guard_names, constrained = _start_checks(system, control, x0, t0, project)
+        report_args, guard_names, constrained = _start_checks(
+            *_primitive.concrete((system, control, x0, t0)), project)
     else:
         x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
     if project_steps is None:
@@ -846,6 +859,7 @@ def simulate(
     # The progress bar is a host callback in the loop: a program with it is never kept in
     # JAX's persistent cache and XLA does not compile its small loops as one function,
     # so it is compiled in only when asked for (once per structure and process).
+    adjoint_given = adjoint is not None
     solver, stepsize_controller, adjoint, dt0, static, ts = _configure(
         system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
         atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
@@ -884,20 +898,27 @@ def simulate(
                                   _diagnose_placeholders(system, control, x0, t0a, ts, track, project_saved,
                                                          static.diagnostics),
                                   error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
-            x0, _ = _finish_checks(report_args, system, x0, t0, constraint_tol, project)
+            x0_checked, _ = _finish_checks(report_args, report_args[0], report_args[2], report_args[3],
+                                           constraint_tol, project)
+            if not differentiated:
+                x0 = x0_checked
+            elif project:  # the projection of a differentiated x0, differentiated
+                x0 = _primitive.call("report", member_report, (system, control, x0, t0a, project),
+                                     options=_programs.QUICK_OPTIONS)[0]
         elif second:  # compiled in a thread while the solve compiles
             warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track, project_saved,
                                        static.diagnostics)
         traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
-                             show)
+                             show, adjoint_given=adjoint_given, on_guard=on_guard)
         if second:
             if warm is not None:
                 warm.result()
-            xs, x_end, diag = _programs.call(
+            xs, x_end, diag = _primitive.call(
                 "diagnose", _saved_eager,
                 (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.x_end, traj.work, track,
-                 project_saved, static.diagnostics), error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
-            traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
+                 project_saved, static.diagnostics), error_mode="off", options=_programs.QUICK_OPTIONS)
+            if project_saved:  # (else the same arrays: the solve's stay, for a shorter derivative)
+                traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
             if static.diagnostics:
                 invariants, drift, cons, us = diag
                 traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
@@ -996,7 +1017,7 @@ def _runtime_checks(traj, static, on_guard, span=None):
 
 def _truncate(traj, t_end, system=None, control=None):
     """Keep the saved points up to t_end and append the state at t_end itself."""
-    ts = np.asarray(traj.ts)
+    ts = np.asarray(_primitive.concrete(traj.ts))
     n = int(np.searchsorted(ts, t_end, side="right"))
     append = system is not None and (n == 0 or ts[n - 1] < t_end)
 
@@ -1034,7 +1055,8 @@ def _guard_of(system, names, x):
 
 
 def _eager_checks(traj, system, control, static, on_guard):
-    result, t_final, leaves = jax.device_get((traj.result, traj.t_final, jtu.tree_leaves(traj.xs)))
+    result, t_final, leaves = jax.device_get(_primitive.concrete((traj.result, traj.t_final,
+                                                                  jtu.tree_leaves(traj.xs))))
     t_final = float(t_final)
     if result == diffrax.RESULTS.event_occurred:
         traj = _truncate(traj, t_final, system, control)

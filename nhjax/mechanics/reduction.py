@@ -97,6 +97,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _primitive
+from .._primitive import stored as _stored
 from .. import _validate as V
 from ..errors import ParameterError
 from ..lie import se2, so3
@@ -642,6 +644,7 @@ class ReducedSystem(AbstractSystem):
         return R, c
 
     # ---------------------------------------------------------- kinematics
+    @_stored("reduction.reference_poses")
     def reference_poses(self, r):
         """(orientations, positions) of the bodies in the reference frame at shape r
         (positions relative to the centre of mass for SO(3)/SO(2))."""
@@ -716,28 +719,33 @@ class ReducedSystem(AbstractSystem):
         w = self._vel(S, Sd, v[:d])
         return 0.5 * self._form(w, w)
 
+    @_stored("reduction.metric")
     def metric(self, r):
         """G(r) = d^2 l / dv^2: the kinetic metric in v = (xi, r') [(d + k) x (d + k)]."""
         V = self._columns(*self._poses_and_jacobian(r))
         return self._gram(V, V)
 
+    @_stored("reduction.locked_inertia")
     def locked_inertia(self, r):
         """I(r), the locked inertia in the reference frame (seed 000 (3.9), seed 001 (6))."""
         d = self.symmetry.dim
         return self.metric(r)[:d, :d]
 
+    @_stored("reduction.connection")
     def connection(self, r):
         """A(r) = I^-1 B (d x k), the local mechanical connection: xi = -A r' + I^-1 mu."""
         d = self.symmetry.dim
         G = self.metric(r)
         return jnp.linalg.solve(G[:d, :d], G[:d, d:])
 
+    @_stored("reduction.reduced_metric")
     def reduced_metric(self, r):
         """M(r) = G_rr - A^T I A (k x k), the vibrational metric (seed 000 (4.7), seed 001 (10))."""
         d = self.symmetry.dim
         G = self.metric(r)
         return G[d:, d:] - G[d:, :d] @ jnp.linalg.solve(G[:d, :d], G[:d, d:])
 
+    @_stored("reduction.curvature")
     def curvature(self, r):
         """F (d, k, k): F[:, i, j] = d_i A_j - d_j A_i - [A_i, A_j] (module docstring)."""
         A = self.connection(r)
@@ -746,6 +754,7 @@ class ReducedSystem(AbstractSystem):
         br = jax.vmap(lambda ai: jax.vmap(lambda aj: self.symmetry.ad(ai) @ aj)(A.T))(A.T)  # [i, j, a]
         return ext - jnp.moveaxis(br, 2, 0)
 
+    @_stored("reduction.rotational_inertia")
     def rotational_inertia(self, r):
         """Inertia about the centre of mass of the locked system [kg m^2]: 3x3 (spatial)
         or scalar (planar)."""
@@ -758,6 +767,7 @@ class ReducedSystem(AbstractSystem):
                 "n,ni,nj->ij", m, y, y)
         return jnp.sum(self.bodies.inertias) + jnp.sum(m * jnp.sum(y * y, -1))
 
+    @_stored("reduction.inertia_condition")
     def inertia_condition(self, r):
         """Normalized determinant of the rotational locked inertia about the centre of
         mass: 1 for a spherical inertia, 0 where the group stops acting freely
@@ -802,6 +812,7 @@ class ReducedSystem(AbstractSystem):
             return jnp.zeros(self.symmetry.dim, r.dtype)
         return m if self.momentum == "body" else self.symmetry.to_body(R, c, m)
 
+    @_stored("reduction.group_velocity")
     def group_velocity(self, x):
         """xi = g^-1 g' = -A(r) r' + I(r)^-1 mu  (seed 001 (8))."""
         _, _, r, rd, _ = self.split(x)
@@ -847,6 +858,7 @@ class ReducedSystem(AbstractSystem):
         rhs = tau_r + dl_dr - Dp[d:] - A.T @ (mu_dot - Dp[:d])
         return xi, jnp.linalg.solve(M, rhs), mu_dot, tau_xi
 
+    @_stored("reduction.shape_accelerations")
     def shape_accelerations(self, x, u=None):
         """r'' at state x under inputs u."""
         _, _, r, rd, _ = self.split(x)
@@ -871,6 +883,7 @@ class ReducedSystem(AbstractSystem):
         R, c, *_ = self.split(x)
         return R, c
 
+    @_stored("reduction.body_states")
     def body_states(self, x):
         """Spatial poses and velocities of the bodies at state x:
         (orientations, positions, angular velocities, linear velocities); planar:
@@ -882,6 +895,7 @@ class ReducedSystem(AbstractSystem):
         rot_s, pos_s, Rg = self.symmetry.place(R, c, rot, pos)
         return rot_s, pos_s, ang, vel @ Rg.T
 
+    @_stored("reduction.momentum_map")
     def momentum_map(self, x):
         """The spatial momentum J of the bodies, summed over them in space (not from mu):
         for SO(3) the angular momentum about the centre of mass; SE(2) (p_x, p_y, L);
@@ -944,6 +958,7 @@ class ReducedSystem(AbstractSystem):
                                 shape_names=self.shape_names, chart_guard=self.chart_guard,
                                 guard_eps=self.guard_eps)
 
+    @_stored("reduction.inverse_dynamics")
     def inverse_dynamics(self, x, shape_acc):
         """Shape forces tau_r that produce r'' = ``shape_acc`` at x (no body wrenches):
         the inverse of r'' = M^-1 (tau_r + h), i.e. tau_r = M (r'' - r''(tau = 0))."""
@@ -1050,14 +1065,15 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     xg, wg = np.polynomial.legendre.leggauss(n)
     S, Aa = np.meshgrid(0.5 * (xg + 1), np.pi * (xg + 1), indexing="ij")
     W = np.outer(0.5 * wg, np.pi * wg)
-    return _curvature_quadrature(system, loop, c, b, jnp.asarray(S.ravel()), jnp.asarray(Aa.ravel()),
-                                 jnp.asarray(W.ravel()), (int(i), int(j)))
+    args = (system, loop, c, b, jnp.asarray(S.ravel(), float), jnp.asarray(Aa.ravel(), float),
+            jnp.asarray(W.ravel(), float), (int(i), int(j)))
+    # one stored program per system structure and loop (a loop that is an equinox module
+    # with array parameters, e.g. ``EllipseLoop``, takes them as inputs: new sizes reuse it)
+    return _primitive.call("curvature_integral", _curvature_quadrature, args,
+                           fallback=_curvature_quadrature_jit)
 
 
-@eqx.filter_jit
 def _curvature_quadrature(system, loop, c, b, s, a, w, plane):
-    """Compiled once per system structure and loop (a loop that is an equinox module
-    with array parameters, e.g. ``CircleLoop``, is traced: new sizes do not recompile)."""
     i, j = plane
 
     def integrand(s, a):
@@ -1069,6 +1085,9 @@ def _curvature_quadrature(system, loop, c, b, s, a, w, plane):
         return system.curvature(r)[:, i, j] * jac
 
     return jnp.einsum("n,na->a", w, jax.vmap(integrand)(s, a))
+
+
+_curvature_quadrature_jit = eqx.filter_jit(_curvature_quadrature)
 
 
 class EllipseLoop(eqx.Module):

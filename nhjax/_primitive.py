@@ -1,0 +1,617 @@
+"""Stored programs under JAX's transformations: one primitive behind every public path.
+
+``nhjax._programs`` keeps a traced program on disk and runs it on concrete arrays.
+Here such a program becomes a JAX primitive (``program_p``), so that a call made
+inside ``jax.grad``, ``jax.vjp``, ``jax.jacrev``, ``jax.jvp``, ``jax.jacfwd`` or
+``jax.linearize`` on concrete values runs stored programs too, instead of tracing
+the function (a solve: seconds) again in every new process:
+
+* evaluation: the program's executable (``_programs.keyed_executable``);
+* forward mode: a second program, the JVP of the function in the inputs that carry
+  tangents, built from its *forward variant* (the same computation set up for
+  forward mode, e.g. a solve with ``diffrax.ForwardMode``, whose loop JAX can push
+  tangents through);
+* reverse mode: two programs, the forward pass of ``jax.vjp`` of the *reverse
+  variant* (e.g. a solve with ``nhjax.DiscreteAdjoint``), which returns the outputs
+  and the residuals the backward pass needs, and the backward pass from those
+  residuals and the output cotangents. The residuals stay on the device between the
+  two; outputs that get no cotangent (diagnostics nobody differentiates) are zero
+  constants in the backward program, and a call whose outputs get none skips it;
+* ``jax.vmap`` (e.g. of the tangents of ``jax.jacfwd``, the cotangents of
+  ``jax.jacrev``): the program of ``jax.vmap`` of the function;
+* inside ``jax.jit`` (reached through a derived program): the stored StableHLO module,
+  which XLA inlines.
+
+Each derived program is itself stored, under its parent's key and what derives it
+(which inputs carry tangents, which outputs cotangents, the batch axes), so a second
+process traces and compiles none of them. ``call`` binds the primitive only when
+every input's value is known (a concrete array, or a tracer of ``jax.grad``/
+``jax.jvp`` over one, as in an eager ``jax.grad(f)(p)``); under ``jax.jit`` or
+``jax.vmap`` of unknown values it traces the function into the caller's program, as
+before, and a function that cannot be exported (host callbacks) or fingerprinted is
+traced as usual.
+
+JAX internals used here (checked against jax 0.10): ``jax._src.core.to_concrete_value``
+(the value under a tracer of differentiation) and ``jax._src.interpreters.ad``'s
+``primitive_linearizations`` and ``fallback_linearize_rule`` (reverse mode through
+JAX's direct linearization); everything else is ``jax.extend`` and
+``jax.interpreters``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.extend as jex
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+from jax.interpreters import ad, batching, mlir
+
+from . import _programs
+
+try:  # the internals this module needs (see the module docstring)
+    from jax._src import core as _core
+    from jax._src.interpreters import ad as _ad
+
+    _to_concrete = _core.to_concrete_value
+    _LINEARIZATIONS = getattr(_ad, "primitive_linearizations", None)
+    _fallback_linearize = getattr(_ad, "fallback_linearize_rule", None)
+except ImportError:  # another JAX: every call traces as usual
+    _to_concrete = None
+    _LINEARIZATIONS = _fallback_linearize = None
+
+__all__ = ["call", "concrete", "has_values", "program_p"]
+
+#: Programs bound through the primitive and derived from them, by kind (tests read it).
+BOUND = {"call": 0, "jvp": 0, "fwd": 0, "bwd": 0, "vmap": 0}
+
+
+# ------------------------------------------------------------------ values
+def _value(x):
+    """The concrete value of a leaf (itself, or under a tracer of differentiation), or
+    None if it is not known (under jit or vmap)."""
+    if not isinstance(x, jax.core.Tracer):
+        return x
+    if _to_concrete is None:
+        return None
+    try:
+        return _to_concrete(x)
+    except Exception:  # noqa: BLE001 - a tracer that cannot tell: unknown
+        return None
+
+
+def has_values(*trees) -> bool:
+    """Whether every array leaf of ``trees`` has a known value: concrete, or a tracer
+    of ``jax.grad``/``jax.jvp`` (and the like) around a concrete value."""
+    return all(_value(x) is not None for x in jtu.tree_leaves(trees) if isinstance(x, jax.core.Tracer))
+
+
+def concrete(tree):
+    """``tree`` with every tracer replaced by its known value (``has_values`` must hold):
+    what eager checks read under ``jax.grad``."""
+    return jtu.tree_map(lambda x: _value(x) if isinstance(x, jax.core.Tracer) else x, tree)
+
+
+def _is_float(aval) -> bool:
+    return jnp.issubdtype(aval.dtype, jnp.inexact)
+
+
+def _tangent_aval(aval):
+    return aval.to_tangent_aval() if hasattr(aval, "to_tangent_aval") else aval.at_least_vspace()
+
+
+def _spec_of(aval) -> jax.ShapeDtypeStruct:
+    return jax.ShapeDtypeStruct(aval.shape, aval.dtype)
+
+
+def _key(*parts) -> str:
+    return hashlib.sha256(repr(parts).encode()).hexdigest()[:40]
+
+
+# ------------------------------------------------------------------ programs
+class Spec:
+    """One program: a function of a flat list of arrays returning a flat list, the
+    shapes it is called on, and its key in the program cache. Equal (and hashed) by key:
+    the primitive's parameter."""
+
+    def __init__(self, name: str, key: str, fn: Callable, in_avals, options=None, *, forward=None,
+                 reverse=None, out_def=None, transpose=None, errors_off=False):
+        self.name, self.key = name, key
+        self.errors_off = errors_off  # traced with equinox's runtime checks off, derivatives too
+        if errors_off:
+            def fn(*args, _fn=fn):
+                with _programs.error_checks(False):
+                    return _fn(*args)
+        self.fn = fn
+        self.in_avals = tuple(in_avals)
+        self.options = dict(options or {})
+        self.forward = forward  # Spec of the forward variant (None: this one)
+        self.reverse = reverse  # callable nz -> Spec of the reverse variant (None: this one)
+        self.out_def = out_def  # the caller's output structure (top-level programs)
+        self.transpose = transpose  # how to transpose a program linear in its last inputs
+        self._out_avals = None
+        self._derived = {}
+        self.primal_in_out = (0, 0)  # a JVP program with its outputs: (inputs, outputs) that are primal
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return isinstance(other, Spec) and other.key == self.key
+
+    def __repr__(self):
+        return f"Spec({self.name}, {self.key[:12]})"
+
+    # what the program is
+    def exported(self):
+        # (lowering traces too: the impl rules of equinox's primitives, e.g. lineax's solve)
+        with _programs.error_checks(not self.errors_off):
+            out = _programs.keyed_exported(self.key, self.fn, [_spec_of(a) for a in self.in_avals])
+        if out is None:
+            raise _Unexportable(self.name)
+        return out
+
+    @property
+    def out_avals(self):
+        if self._out_avals is None:
+            self._out_avals = tuple(self.exported().out_avals)
+        return self._out_avals
+
+    def run(self, args):
+        with _programs.error_checks(not self.errors_off):
+            exe = _programs.keyed_executable(self.key, self.fn, [_spec_of(a) for a in self.in_avals],
+                                             self.options)
+        if exe is None:
+            raise _Unexportable(self.name)
+        return exe(*args)
+
+    def derive(self, kind, params, make):
+        """The derived program ``kind`` with ``params``, made once per process."""
+        spec = self._derived.get((kind, params))
+        if spec is None:
+            spec = make()
+            self._derived[(kind, params)] = spec
+        return spec
+
+    # ---------------------------------------------------- derived programs
+    def jvp(self, nz: tuple, with_primal: bool = False):
+        """(*primals, *tangents of the inputs where nz) -> tangents of the float outputs
+        (``with_primal``: the outputs before them, computed once with the tangents), from
+        the forward variant. Without the outputs it is linear in the tangents."""
+
+        def make():
+            src = self.forward or self
+            idx = [i for i, z in enumerate(nz) if z]
+
+            def fn(*args):
+                primals, tangents = list(args[:len(nz)]), args[len(nz):]
+
+                def of(*v):
+                    full = list(primals)
+                    for i, x in zip(idx, v):
+                        full[i] = x
+                    return list(src.fn(*full))
+
+                out, tout = jax.jvp(of, tuple(primals[i] for i in idx), tuple(tangents))
+                touts = [t for o, t in zip(out, tout) if jnp.issubdtype(o.dtype, jnp.inexact)]
+                return list(out) + touts if with_primal else touts
+
+            avals = self.in_avals + tuple(_tangent_aval(self.in_avals[i]) for i in idx)
+            name = f"{self.name}.jvp"
+            spec = Spec(name, f"{name}-" + _key(self.key, "jvp", nz, with_primal), fn, avals, self.options,
+                        transpose=None if with_primal else _JvpTranspose(self, nz), errors_off=self.errors_off)
+            if with_primal:
+                spec.primal_in_out = (len(nz), len(self.out_avals))
+            return spec
+
+        return self.derive("jvp", (nz, with_primal), make)
+
+    def fwd(self, nz: tuple):
+        """(*primals) -> (*outputs, *residuals) of ``jax.vjp`` of the reverse variant in
+        the inputs where nz."""
+
+        def make():
+            src = self.reverse(nz) if self.reverse is not None else self
+            return _Forward(self, src, nz)
+
+        return self.derive("fwd", nz, make)
+
+    def unbatched_outputs(self, axes: tuple) -> tuple:
+        """Which outputs stay unbatched under ``jax.vmap`` with ``in_axes=axes``: those of a
+        JVP program with its outputs when only tangents are batched (``jax.jacfwd``:
+        the outputs once, as concrete values under it); all others are batched."""
+        n_in, n_out = self.primal_in_out
+        primals_batched = any(ax is not None for ax in axes[:n_in])
+        return tuple(i < n_out and not primals_batched for i in range(self.n_outputs))
+
+    @property
+    def n_outputs(self) -> int:
+        return len(self.out_avals)
+
+    def vmap(self, axes: tuple, size: int):
+        """The program of ``jax.vmap(fn, in_axes=axes)`` (outputs batched on axis 0 but
+        for ``unbatched_outputs``)."""
+
+        def make():
+            avals = tuple(a if ax is None else a.update(shape=a.shape[:ax] + (size,) + a.shape[ax:])
+                          for a, ax in zip(self.in_avals, axes))
+            out_axes = [None if u else 0 for u in self.unbatched_outputs(axes)]
+
+            def fn(*args):
+                return jax.vmap(lambda *a: list(self.fn(*a)), in_axes=axes, out_axes=out_axes)(*args)
+
+            transpose = None if self.transpose is None else self.transpose.batched(self, axes, size)
+            return Spec(f"{self.name}.vmap", f"{self.name}.vmap" + "-" + _key(self.key, "vmap", axes, size), fn, avals, self.options,
+                        transpose=transpose, errors_off=self.errors_off)
+
+        return self.derive("vmap", (axes, size), make)
+
+
+class _Unexportable(Exception):
+    """jax.export refused the function (a host callback, an effect): trace it as usual."""
+
+
+class _Forward(Spec):
+    """The forward pass of reverse mode (``Spec.fwd``); ``bwd(ct_nz)`` its backward pass."""
+
+    def __init__(self, parent: Spec, src: Spec, nz: tuple):
+        idx = [i for i, z in enumerate(nz) if z]
+        self.parent, self.nz, self.idx, self.box = parent, nz, idx, {}
+
+        def fn(*primals):
+            def of(*v):
+                full = list(primals)
+                for i, x in zip(idx, v):
+                    full[i] = x
+                return list(src.fn(*full))
+
+            out, vjp = jax.vjp(of, *[primals[i] for i in idx])
+            res, self.box["res_def"] = jtu.tree_flatten(vjp)
+            return list(out) + [jnp.asarray(r) for r in res]
+
+        super().__init__(f"{parent.name}.fwd", f"{parent.name}.fwd-" + _key(parent.key, "fwd", nz, src.key), fn, parent.in_avals,
+                         parent.options, errors_off=parent.errors_off)
+
+    def res_def(self):
+        if "res_def" not in self.box:  # loaded from disk: trace it for the residuals' structure
+            jax.eval_shape(self.fn, *[_spec_of(a) for a in self.in_avals])
+        return self.box["res_def"]
+
+    def lin(self):
+        """(*residuals, *tangents) -> output tangents: only ever transposed (reverse mode)."""
+
+        def make():
+            n_out = len(self.parent.out_avals)
+            res_avals = self.out_avals[n_out:]
+            avals = res_avals + tuple(_tangent_aval(self.parent.in_avals[i]) for i in self.idx)
+
+            def fn(*args):
+                raise NotImplementedError(
+                    "nhjax: a linearization made for reverse mode was evaluated forward; use jax.jvp")
+
+            spec = Spec(f"{self.parent.name}.lin", f"{self.parent.name}.lin" + "-" + _key(self.key, "lin"), fn, avals, self.options,
+                        transpose=_LinTranspose(self, len(res_avals)))
+            spec._out_avals = tuple(_tangent_aval(a) for a in self.parent.out_avals if _is_float(a))
+            return spec
+
+        return self.derive("lin", (), make)
+
+    def bwd(self, ct_nz: tuple):
+        """(*residuals, *cotangents of the float outputs where ct_nz) -> cotangents of
+        the inputs where nz."""
+
+        def make():
+            out_avals = self.parent.out_avals
+            n_res = len(self.out_avals) - len(out_avals)
+            floats = [i for i, a in enumerate(out_avals) if _is_float(a)]
+
+            def fn(*args):
+                res, cts = args[:n_res], iter(args[n_res:])
+                vjp = jtu.tree_unflatten(self.res_def(), list(res))
+                full = []
+                for i, a in enumerate(out_avals):
+                    if not _is_float(a):
+                        full.append(np.zeros(a.shape, jax.dtypes.float0))
+                    elif ct_nz[floats.index(i)]:
+                        full.append(next(cts))
+                    else:
+                        full.append(jnp.zeros(a.shape, a.dtype))
+                return list(vjp(full))
+
+            avals = self.out_avals[len(out_avals):] + tuple(
+                _tangent_aval(out_avals[i]) for k, i in enumerate(floats) if ct_nz[k])
+            return Spec(f"{self.parent.name}.bwd", f"{self.parent.name}.bwd" + "-" + _key(self.key, "bwd", ct_nz), fn, avals, self.options,
+                        errors_off=self.errors_off)
+
+        return self.derive("bwd", ct_nz, make)
+
+
+class _LinTranspose:
+    """Transpose of ``_Forward.lin``: the backward program."""
+
+    def __init__(self, forward: _Forward, n_res: int):
+        self.forward, self.n_res = forward, n_res
+
+    def __call__(self, cts, args):
+        res, tangents = args[:self.n_res], args[self.n_res:]
+        ct_nz = tuple(type(c) is not ad.Zero for c in cts)
+        if not any(ct_nz):
+            return [None] * len(res) + [ad.Zero(t.aval) for t in tangents]
+        bwd = self.forward.bwd(ct_nz)
+        BOUND["bwd"] += 1
+        out = program_p.bind(*res, *[c for c in cts if type(c) is not ad.Zero], spec=bwd)
+        return [None] * len(res) + list(out)
+
+    def batched(self, spec, axes, size):
+        return None
+
+
+class _JvpTranspose:
+    """Transpose of ``Spec.jvp`` (linear in its tangents): reverse mode of the parent,
+    for the paths that transpose a JVP (JAX without direct linearization)."""
+
+    def __init__(self, parent: Spec, nz: tuple):
+        self.parent, self.nz = parent, nz
+
+    def __call__(self, cts, args):
+        n = len(self.nz)
+        primals, tangents = args[:n], args[n:]
+        ct_nz = tuple(type(c) is not ad.Zero for c in cts)
+        if not any(ct_nz):
+            return [None] * n + [ad.Zero(t.aval) for t in tangents]
+        fwd = self.parent.fwd(self.nz)
+        outs = program_p.bind(*primals, spec=fwd)
+        res = outs[len(self.parent.out_avals):]
+        out = program_p.bind(*res, *[c for c in cts if type(c) is not ad.Zero], spec=fwd.bwd(ct_nz))
+        return [None] * n + list(out)
+
+    def batched(self, spec, axes, size):
+        return None
+
+
+# ------------------------------------------------------------------ the primitive
+program_p = jex.core.Primitive("nhjax_program")
+program_p.multiple_results = True
+
+
+def _impl(*args, spec):
+    return spec.run(args)
+
+
+def _abstract_eval(*avals, spec):
+    return [a.update(weak_type=False) if hasattr(a, "update") else a for a in spec.out_avals]
+
+
+def _lowering(ctx, *args, spec):
+    exported = spec.exported()
+    return mlir.lower_fun(lambda *a: exported.call(*a), multiple_results=True)(ctx, *args)
+
+
+def _jvp(primals, tangents, *, spec):
+    nz = tuple(type(t) is not ad.Zero and _is_float(spec.in_avals[i]) for i, t in enumerate(tangents))
+    if not any(nz):
+        return program_p.bind(*primals, spec=spec), [ad.Zero(_tangent_aval(a)) for a in spec.out_avals]
+    floats = [_is_float(a) for a in spec.out_avals]
+    BOUND["jvp"] += 1
+    # forward mode: outputs and tangents from one program (the tangents need the
+    # outputs' computation anyway)
+    outs = program_p.bind(*primals, *[t for t, z in zip(tangents, nz) if z], spec=spec.jvp(nz, True))
+    n_out = len(spec.out_avals)
+    touts = iter(outs[n_out:])
+    return outs[:n_out], [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, floats)]
+
+
+def _linearize(is_vjp, nzs, *primals, spec):
+    nz = tuple(bool(z) and _is_float(spec.in_avals[i]) for i, z in enumerate(nzs))
+    if not any(nz) or spec.transpose is not None:
+        return _fallback_linearize(program_p, is_vjp, nzs, *primals, spec=spec)
+    out_nz = [_is_float(a) for a in spec.out_avals]
+    if not is_vjp:  # jax.linearize: the outputs, and the tangent map as the linear JVP program
+        lin = spec.jvp(nz)
+
+        def linearized(residuals, *tangents):
+            ts = [t for t, z in zip(tangents, nz) if z]
+            touts = iter(program_p.bind(*residuals, *ts, spec=lin))
+            return [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, out_nz)]
+
+        return program_p.bind(*primals, spec=spec), out_nz, list(primals), linearized
+    fwd = spec.fwd(nz)
+    BOUND["fwd"] += 1
+    outs = program_p.bind(*primals, spec=fwd)
+    n_out = len(spec.out_avals)
+    out, res = list(outs[:n_out]), list(outs[n_out:])
+    lin = fwd.lin()
+
+    def linearized(residuals, *tangents):
+        ts = [t for t, z in zip(tangents, nz) if z]
+        touts = iter(program_p.bind(*residuals, *ts, spec=lin))
+        return [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, out_nz)]
+
+    return out, out_nz, res, linearized
+
+
+def _transpose(cts, *args, spec):
+    if spec.transpose is None:
+        raise NotImplementedError(f"nhjax: the program {spec.name} is not linear: it has no transpose")
+    return spec.transpose(list(cts), list(args))
+
+
+def _batch(args, dims, *, spec):
+    axes = tuple(None if d is None or not isinstance(d, int) else int(d) for d in dims)  # not mapped: None
+    size = next(a.shape[d] for a, d in zip(args, axes) if d is not None)
+    BOUND["vmap"] += 1
+    out = program_p.bind(*args, spec=spec.vmap(axes, size))
+    return out, [None if u else 0 for u in spec.unbatched_outputs(axes)]
+
+
+program_p.def_impl(_impl)
+program_p.def_abstract_eval(_abstract_eval)
+mlir.register_lowering(program_p, _lowering)
+ad.primitive_jvps[program_p] = _jvp
+ad.primitive_transposes[program_p] = _transpose
+batching.primitive_batchers[program_p] = _batch
+if _LINEARIZATIONS is not None and _fallback_linearize is not None:
+    _LINEARIZATIONS[program_p] = _linearize
+
+
+# ------------------------------------------------------------------ entry
+_SPECS: dict = {}
+
+
+def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, error_mode: str | None = None,
+         forward: Callable | None = None, reverse: Callable | None = None, variant_key=(),
+         fallback: Callable | None = None):
+    """``fn(*args)`` through the program cache, under any differentiation of concrete values.
+
+    ``fn``: a jax-traceable function returning a pytree of arrays in builtin containers;
+    arrays in ``args`` are its inputs, everything else is static. Concrete ``args``: the
+    stored program runs (``_programs.call``). Tracers of ``jax.grad``/``jax.jvp``/...
+    around concrete values: the primitive is bound, and its derivatives are stored
+    programs (module docstring). ``forward(args)`` / ``reverse(args, nz)``: the
+    arguments of the forward- and reverse-mode variants (same array structure; ``nz``:
+    ``args`` with True where an array carries a tangent, False elsewhere); default
+    ``args``; ``variant_key``: whatever else the variants depend on (hashable). Anything else (values under jit or vmap, the cache off, an unexportable or
+    unreadable function): ``fallback(*args)`` if given, else ``fn(*args)`` traced into
+    the caller's program."""
+    leaves = jtu.tree_leaves(args)
+    if not any(isinstance(x, jax.core.Tracer) for x in leaves):
+        return _programs.call(name, fn, args, error_mode=error_mode, fallback=fallback, compiler_options=options)
+    plain = fallback or fn
+    if (_to_concrete is None or _programs.directory() is None or jax.config.jax_disable_jit
+            or not has_values(args)):
+        return plain(*args)
+    spec = _spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
+    if spec is None:
+        return plain(*args)
+    dyn = [x for x in leaves if eqx.is_array(x)]
+    try:
+        BOUND["call"] += 1
+        out = program_p.bind(*dyn, spec=spec)
+    except _Unexportable:
+        _SPECS[(_quick(name, fn, args, options, error_mode), variant_key)] = None
+        return plain(*args)
+    return jtu.tree_unflatten(spec.out_def, out)
+
+
+def _quick(name, fn, args, options, error_mode):
+    leaves, treedef = jtu.tree_flatten(args)
+    desc = tuple((tuple(x.shape), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
+    return (name, fn, treedef, desc, tuple(sorted((options or {}).items())), error_mode or _programs._error_mode())
+
+
+def _spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
+    """The Spec of ``fn`` on ``args``'s structure (None: cannot be cached)."""
+    try:
+        quick = (_quick(name, fn, args, options, error_mode), variant_key)
+        hash(quick)
+    except TypeError:
+        quick = None
+    if quick is not None and quick in _SPECS:
+        return _SPECS[quick]
+    spec = _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
+    if quick is not None:
+        _SPECS[quick] = spec
+    return spec
+
+
+def _flat_fn(fn, args):
+    """``fn`` as a function of the flat list of ``args``'s arrays, and that function's
+    output structure (a box filled when it is traced)."""
+    dyn, static = eqx.partition(args, eqx.is_array)
+    dyn_def = jtu.tree_structure(dyn)
+    box = {}
+
+    def flat(*lv):
+        out = fn(*eqx.combine(jtu.tree_unflatten(dyn_def, list(lv)), static))
+        out_leaves, box["out_def"] = jtu.tree_flatten(out)
+        return out_leaves
+
+    return flat, box
+
+
+def _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
+    try:
+        key = f"{name}-" + _programs.fingerprint(name, fn, args, error_mode=error_mode)
+    except _programs.Uncacheable:
+        _programs.STATS["uncacheable"] += 1
+        return None
+    if options:
+        key += "-" + _key(sorted(options.items()))[:12]
+    dyn = [x for x in jtu.tree_leaves(args) if eqx.is_array(x)]
+    avals = [jax.core.ShapedArray(tuple(x.shape), x.dtype) for x in dyn]
+    off = error_mode == "off"
+    flat, box = _flat_fn(fn, args)
+    spec = Spec(name, key, flat, avals, options, errors_off=off)
+    out_def = _programs.keyed_out_def(key)
+    if out_def is None:
+        try:
+            with _programs.error_checks(not off):
+                exported = _programs.keyed_exported(key, spec.fn, [_spec_of(a) for a in avals], out_box=box)
+        except Exception:  # noqa: BLE001 - the plain path raises the user's own error
+            exported = None
+        if exported is None:
+            return None
+        out_def = _programs.keyed_out_def(key)
+        if out_def is None:
+            return None
+    spec.out_def = out_def
+    if forward is not None:
+        fargs = forward(args)
+        fflat, _ = _flat_fn(fn, fargs)
+        spec.forward = Spec(f"{name}.forward", f"{name}.forward" + "-" + _key(key, "forward", variant_key), fflat, avals, options,
+                            errors_off=off)
+    if reverse is not None:
+        dyn_def = jtu.tree_structure(eqx.partition(args, eqx.is_array)[0])
+
+        def reverse_spec(nz):
+            mask = jtu.tree_unflatten(dyn_def, list(nz))
+            rargs = reverse(args, eqx.combine(mask, eqx.partition(args, eqx.is_array)[1]))
+            rflat, _ = _flat_fn(fn, rargs)
+            return Spec(f"{name}.reverse", f"{name}.reverse" + "-" + _key(key, "reverse", nz, variant_key), rflat, avals, options,
+                        errors_off=off)
+
+        spec.reverse = reverse_spec
+    return spec
+
+
+def _as_input(v):
+    """An argument of a stored method: arrays as they are, numbers and sequences as
+    float64 arrays (handed over without a program of their own), None and the rest as
+    static values."""
+    if v is None or isinstance(v, (jax.Array, np.ndarray)) or isinstance(v, jax.core.Tracer):
+        return v
+    if isinstance(v, (int, float, list, tuple)) and not isinstance(v, bool):
+        try:
+            return jnp.asarray(np.asarray(v, float), float)
+        except (TypeError, ValueError):
+            return v
+    return v
+
+
+def stored(name: str, options: dict | None = None):
+    """Decorator: ``fn(self, *args)`` (a system's geometry, say) runs as one stored
+    program when its arguments' values are known (eager calls, and under ``jax.grad``
+    and the like, with stored derivatives: see ``call``), instead of one small compiled
+    program per operation in every new process; called while something is traced
+    (inside a solve, under ``jax.jit`` or ``jax.vmap``) it is ``fn`` itself, traced
+    into the caller's program."""
+
+    def decorate(fn):
+        import functools
+
+        @functools.wraps(fn)
+        def method(self, *args):
+            args = tuple(_as_input(a) for a in args)
+            leaves = jtu.tree_leaves((self, args))
+            if any(isinstance(x, jax.core.Tracer) for x in leaves) and not has_values((self, args)):
+                return fn(self, *args)
+            return call(name, fn, (self, *args), options=options)
+
+        method.plain = fn
+        return method
+
+    return decorate

@@ -1,0 +1,139 @@
+"""First answers on every path (nhjax/_primitive.py): a function differentiated around
+``simulate`` runs stored programs for the solve and its derivatives, so that
+
+* forward mode (``jax.jvp``, ``jax.jacfwd``) works on simulate's defaults, as reverse
+  mode (``jax.grad``, ``jax.jacrev``) does, with the same derivative;
+* a second process neither traces nor compiles any of it.
+
+Each derivative is checked against central differences of the solve itself and
+against the other mode; the counts come from the tracing counter of the solve, the
+program cache's statistics and JAX's own compile events."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import nhjax
+from nhjax.scenes import FallingCat
+
+CAT = FallingCat()
+X0 = CAT.initial_state(0.8, chi_dot=0.5)
+W = jnp.array([1.7, 0.9])
+PHASE = jnp.array([0.0, np.pi / 2])
+
+
+def _final_psi(p):
+    """psi(5) of the cat under torques of amplitudes p[:2], from an initial bend rate p[2]."""
+    u = nhjax.Sinusoids(jnp.zeros(2), p[:2], W, PHASE)
+    x0 = X0.at[4].set(p[2])
+    return nhjax.simulate(CAT, x0, 5.0, control=u).xs[-1, 2]
+
+
+P = jnp.array([0.04, 0.02, 0.5])
+
+
+def test_forward_and_reverse_mode_on_defaults_agree_and_match_differences():
+    g = np.asarray(jax.grad(_final_psi)(P))
+    jf = np.asarray(jax.jacfwd(_final_psi)(P))
+    _, jv = jax.jvp(_final_psi, (P,), (jnp.array([1.0, -2.0, 0.5]),))
+    np.testing.assert_allclose(jf, g, rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(float(jv), g @ np.array([1.0, -2.0, 0.5]), rtol=1e-10, atol=1e-10)
+    h = 1e-6
+    fd = np.array([(float(_final_psi(P + h * e)) - float(_final_psi(P - h * e))) / (2 * h) for e in np.eye(3)])
+    assert np.all(np.abs(fd) > 1e-2)  # every input moves psi: each entry could be wrong
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-7)
+
+
+_CHILD = """
+import json, sys
+import jax, jax.numpy as jnp, numpy as np
+compiles, hit = [], [False]  # XLA compiles that no cache answered (a hit comes before its duration event)
+jax.monitoring.register_event_listener(
+    lambda name, **kw: hit.__setitem__(0, True) if name == "/jax/compilation_cache/cache_hits" else None)
+def on_compile(name, secs, **kw):
+    if name == "/jax/core/compile/backend_compile_duration":
+        if not hit[0]:
+            compiles.append(kw.get("fun_name", "?"))
+        hit[0] = False
+jax.monitoring.register_event_duration_secs_listener(on_compile)
+sys.path.insert(0, {here!r})
+import test_first_answers as t
+from nhjax import _programs, _primitive
+sim = sys.modules["nhjax.integrate.simulate"]
+before = len(compiles)
+out = dict(grad=np.asarray(jax.grad(t._final_psi)(t.P)).tolist(),
+           jacfwd=np.asarray(jax.jacfwd(t._final_psi)(t.P)).tolist(),
+           jacrev=np.asarray(jax.jacrev(t._final_psi)(t.P)).tolist())
+print(json.dumps(dict(out, traces=sum(sim.TRACES.values()), stats=dict(_programs.STATS),
+                      bound=dict(_primitive.BOUND), compiles=compiles[before:])))
+"""
+
+
+def test_a_second_process_neither_traces_nor_compiles_the_derivatives(tmp_path):
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    code = _CHILD.format(here=os.path.dirname(__file__))
+
+    def run():
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+        return json.loads(r.stdout.strip().splitlines()[-1])
+
+    first, second = run(), run()
+    assert first["traces"] >= 2 and first["stats"]["stored"] >= 6  # solve, its fwd, bwd, jvp, ...
+    assert first["compiles"]  # the counter sees compiles
+    assert first["bound"]["fwd"] >= 1 and first["bound"]["bwd"] >= 1 and first["bound"]["jvp"] >= 1
+    assert second["traces"] == 0, second
+    assert second["stats"]["stored"] == 0 and second["stats"]["compiled"] == 0, second
+    assert second["compiles"] == [], second  # nor JAX: every program it ran came from a cache
+    assert second["stats"]["executables"] >= 6
+    for k in ("grad", "jacfwd", "jacrev"):
+        assert second[k] == first[k]
+    np.testing.assert_allclose(first["jacrev"], first["grad"], rtol=0, atol=1e-12)  # the batched backward pass
+
+
+def _first_impact(h, adjoint="forward"):
+    """The first impact time [s] of a ball dropped from h [m] on the vibrating table."""
+    from nhjax.scenes import BouncingBall
+
+    ball = BouncingBall()
+    return nhjax.simulate_impacts(ball, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8,
+                                  adjoint=adjoint).impact_times[0]
+
+
+def test_impact_times_differentiate_in_both_modes_whatever_adjoint_was_asked():
+    """The stored programs give each mode its own loop: grad of a solve set up for forward
+    mode (adjoint="forward", the default) works, and agrees with jacfwd and differences."""
+    h = 0.1
+    g_rev = float(jax.grad(_first_impact)(h))  # a solve set up for forward mode, differentiated in reverse
+    g_fwd = float(jax.jacfwd(_first_impact)(h))
+    d = 1e-6
+    fd = (float(_first_impact(h + d)) - float(_first_impact(h - d))) / (2 * d)
+    assert abs(fd) > 0.1
+    np.testing.assert_allclose(g_rev, g_fwd, rtol=1e-10)
+    np.testing.assert_allclose(g_rev, fd, rtol=1e-6)
+
+
+def test_reduction_geometry_runs_as_stored_programs_equal_to_its_plain_functions():
+    from nhjax import _primitive
+    from nhjax.scenes import PlanarChain
+
+    chain = PlanarChain()
+    x = chain.initial_state(phi=[0.3, -0.2], phi_dot=[0.1, 0.4])
+    r = jnp.array([0.3, -0.2])
+    before = _primitive.BOUND["call"]
+    for name, args in (("curvature", (r,)), ("body_states", (x,))):
+        method = getattr(type(chain), name)
+        stored, plain = method(chain, *args), jax.jit(method.plain)(chain, *args)
+        for a, b in zip(jax.tree_util.tree_leaves(stored), jax.tree_util.tree_leaves(plain)):
+            np.testing.assert_allclose(a, b, rtol=1e-13, atol=1e-14)
+    # under jax.grad the stored program is differentiated by its own stored derivatives
+    g = jax.grad(lambda q: chain.connection(q)[2, 0])(r)
+    d = 1e-6
+    fd = [(float(chain.connection(r + d * e)[2, 0]) - float(chain.connection(r - d * e)[2, 0])) / (2 * d)
+          for e in np.eye(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
+    assert _primitive.BOUND["call"] > before
