@@ -143,14 +143,15 @@ call = lambda: nhjax.simulate_impacts(system, x0, 2.0)""",
     "jax.jacfwd of the first impact time": """
 import jax.numpy as jnp
 system = S.BouncingBall()
-first = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8).impact_times[0]
-call = lambda: jax.jacfwd(first)(0.1)""",
+first_impact = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0,
+                                                max_impacts=8).impact_times[0]
+call = lambda: jax.jacfwd(first_impact)(0.1)""",
     "jax.grad of the first impact time (adjoint='reverse')": """
 import jax.numpy as jnp
 system = S.BouncingBall()
-first = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8,
-                                         adjoint="reverse").impact_times[0]
-call = lambda: jax.grad(first)(0.1)""",
+first_impact = lambda h: nhjax.simulate_impacts(system, jnp.stack([h, 0.0]), 0.5, saveat=0, max_impacts=8,
+                                                adjoint="reverse").impact_times[0]
+call = lambda: jax.grad(first_impact)(0.1)""",
     "simulate_batch of 64 bouncing balls": """
 system = S.BouncingBall(); X = np.stack([np.linspace(0.05, 0.2, 64), np.zeros(64)], 1)
 call = lambda: nhjax.simulate_batch(system, X, 2.0)""",
@@ -190,14 +191,14 @@ else:
 t = time.perf_counter()
 tr = call()
 jax.block_until_ready(tr)
-first = time.perf_counter() - t
+first_call_s = time.perf_counter() - t
 runs = []
 for _ in range(5):
     t = time.perf_counter()
     jax.block_until_ready(call())
     runs.append(time.perf_counter() - t)
 steps = int(np.max(tr.num_accepted_steps)) if hasattr(tr, "num_accepted_steps") else -1
-print(json.dumps(dict(first_call_s=first, run_s=float(np.median(runs)), import_s=t_import, state_s=t_state,
+print(json.dumps(dict(first_call_s=first_call_s, run_s=float(np.median(runs)), import_s=t_import, state_s=t_state,
                       steps=steps, t1=float(globals().get("t1", float("nan"))))))
 """
 

@@ -113,29 +113,46 @@ def _key(*parts) -> str:
 
 
 # ------------------------------------------------------------------ programs
+def _aval(x):
+    a = jax.typeof(x) if hasattr(jax, "typeof") else jax.core.get_aval(x)
+    return jax.core.ShapedArray(tuple(a.shape), a.dtype)
+
+
 class Spec:
     """One program: a function of a flat list of arrays returning a flat list, the
     shapes it is called on, and its key in the program cache. Equal (and hashed) by key:
-    the primitive's parameter."""
+    the primitive's parameter.
 
-    def __init__(self, name: str, key: str, fn: Callable, in_avals, options=None, *, forward=None,
-                 reverse=None, out_def=None, transpose=None, errors_off=False):
+    Its outputs' shapes are recorded whenever its function is traced, in whatever trace
+    (inside a derivative's or a batch's program too: there the function sees its own
+    shapes), and kept on disk beside the programs (``_programs.store_meta``): so a
+    derivative's program tells its parent's outputs, and a new process knows them
+    without tracing. ``root``: the program whose outputs this one's are (a variant:
+    the same computation set up for forward or reverse mode); its traces record them."""
+
+    def __init__(self, name: str, key: str, fn: Callable, in_avals, options=None, *, root=None,
+                 transpose=None, errors_off=False, box=None):
         self.name, self.key = name, key
         self.errors_off = errors_off  # traced with equinox's runtime checks off, derivatives too
-        if errors_off:
-            def fn(*args, _fn=fn):
-                with _programs.error_checks(False):
-                    return _fn(*args)
-        self.fn = fn
         self.in_avals = tuple(in_avals)
         self.options = dict(options or {})
-        self.forward = forward  # Spec of the forward variant (None: this one)
-        self.reverse = reverse  # callable nz -> Spec of the reverse variant (None: this one)
-        self.out_def = out_def  # the caller's output structure (top-level programs)
+        self.root = root
         self.transpose = transpose  # how to transpose a program linear in its last inputs
+        self.box = {} if box is None else box  # the caller's output structure, set when traced
+        self.forward = None  # Spec of the forward variant (None: this one)
+        self.reverse = None  # callable nz -> Spec of the reverse variant (None: this one)
         self._out_avals = None
         self._derived = {}
-        self.primal_in_out = (0, 0)  # a JVP program with its outputs: (inputs, outputs) that are primal
+        self.primals = None  # a JVP program with its outputs: (inputs, the parent) whose outputs come first
+        self.lazy = False  # reverse mode through the JVP's transpose, only where a cotangent comes
+
+        def traced(*args):
+            with _programs.error_checks(not errors_off):
+                out = list(fn(*args))
+            self._record(out)
+            return out
+
+        self.fn = traced
 
     def __hash__(self):
         return hash(self.key)
@@ -146,25 +163,47 @@ class Spec:
     def __repr__(self):
         return f"Spec({self.name}, {self.key[:12]})"
 
-    # what the program is
+    # ---------------------------------------------------- what the program is
+    def _record(self, out):
+        if self._out_avals is None:
+            self._out_avals = tuple(_aval(x) for x in out)
+            _programs.store_meta(self.key, self.box.get("out_def"), self._out_avals)
+        if self.root is not None:
+            self.root._record(out)
+
+    @property
+    def out_avals(self):
+        """Shapes and dtypes of the outputs: recorded, stored, or traced now."""
+        if self._out_avals is None:
+            meta = _programs.keyed_meta(self.key)
+            if meta is not None:
+                self._out_avals = tuple(jax.core.ShapedArray(shape, np.dtype(dt)) for shape, dt in meta[1])
+                if meta[0] is not None:
+                    self.box.setdefault("out_def", meta[0])
+            else:
+                jax.eval_shape(self.fn, *[_spec_of(a) for a in self.in_avals])
+        return self._out_avals
+
+    @property
+    def out_def(self):
+        """The caller's output structure (top-level programs)."""
+        if "out_def" not in self.box:
+            self.out_avals  # noqa: B018 - recorded with them
+        return self.box["out_def"]
+
     def exported(self):
         # (lowering traces too: the impl rules of equinox's primitives, e.g. lineax's solve)
         with _programs.error_checks(not self.errors_off):
-            out = _programs.keyed_exported(self.key, self.fn, [_spec_of(a) for a in self.in_avals])
+            out = _programs.keyed_exported(self.key, self.fn, [_spec_of(a) for a in self.in_avals],
+                                           lambda: self.box.get("out_def"))
         if out is None:
             raise _Unexportable(self.name)
         return out
 
-    @property
-    def out_avals(self):
-        if self._out_avals is None:
-            self._out_avals = tuple(self.exported().out_avals)
-        return self._out_avals
-
     def run(self, args):
         with _programs.error_checks(not self.errors_off):
             exe = _programs.keyed_executable(self.key, self.fn, [_spec_of(a) for a in self.in_avals],
-                                             self.options)
+                                             self.options, lambda: self.box.get("out_def"))
         if exe is None:
             raise _Unexportable(self.name)
         return exe(*args)
@@ -176,6 +215,11 @@ class Spec:
             spec = make()
             self._derived[(kind, params)] = spec
         return spec
+
+    def _child(self, kind, params, fn, avals, **kw):
+        name = f"{self.name}.{kind}"
+        return Spec(name, f"{name}-" + _key(self.key, kind, params), fn, avals, self.options,
+                    errors_off=self.errors_off, **kw)
 
     # ---------------------------------------------------- derived programs
     def jvp(self, nz: tuple, with_primal: bool = False):
@@ -194,18 +238,17 @@ class Spec:
                     full = list(primals)
                     for i, x in zip(idx, v):
                         full[i] = x
-                    return list(src.fn(*full))
+                    return src.fn(*full)
 
                 out, tout = jax.jvp(of, tuple(primals[i] for i in idx), tuple(tangents))
                 touts = [t for o, t in zip(out, tout) if jnp.issubdtype(o.dtype, jnp.inexact)]
                 return list(out) + touts if with_primal else touts
 
             avals = self.in_avals + tuple(_tangent_aval(self.in_avals[i]) for i in idx)
-            name = f"{self.name}.jvp"
-            spec = Spec(name, f"{name}-" + _key(self.key, "jvp", nz, with_primal), fn, avals, self.options,
-                        transpose=None if with_primal else _JvpTranspose(self, nz), errors_off=self.errors_off)
+            spec = self._child("jvp", (nz, with_primal), fn, avals,
+                               transpose=None if with_primal else _JvpTranspose(self, nz))
             if with_primal:
-                spec.primal_in_out = (len(nz), len(self.out_avals))
+                spec.primals = (len(nz), self)
             return spec
 
         return self.derive("jvp", (nz, with_primal), make)
@@ -220,33 +263,34 @@ class Spec:
 
         return self.derive("fwd", nz, make)
 
-    def unbatched_outputs(self, axes: tuple) -> tuple:
-        """Which outputs stay unbatched under ``jax.vmap`` with ``in_axes=axes``: those of a
-        JVP program with its outputs when only tangents are batched (``jax.jacfwd``:
-        the outputs once, as concrete values under it); all others are batched."""
-        n_in, n_out = self.primal_in_out
-        primals_batched = any(ax is not None for ax in axes[:n_in])
-        return tuple(i < n_out and not primals_batched for i in range(self.n_outputs))
-
-    @property
-    def n_outputs(self) -> int:
-        return len(self.out_avals)
+    def unbatched(self, axes: tuple) -> int:
+        """How many leading outputs stay unbatched under ``jax.vmap`` with ``in_axes=axes``:
+        a JVP program's outputs when only tangents are batched (``jax.jacfwd``: the
+        outputs once, concrete under it); all others are batched."""
+        if self.primals is None:
+            return 0
+        n_in, parent = self.primals
+        return 0 if any(ax is not None for ax in axes[:n_in]) else len(parent.out_avals)
 
     def vmap(self, axes: tuple, size: int):
         """The program of ``jax.vmap(fn, in_axes=axes)`` (outputs batched on axis 0 but
-        for ``unbatched_outputs``)."""
+        for the ``unbatched`` leading ones)."""
 
         def make():
             avals = tuple(a if ax is None else a.update(shape=a.shape[:ax] + (size,) + a.shape[ax:])
                           for a, ax in zip(self.in_avals, axes))
-            out_axes = [None if u else 0 for u in self.unbatched_outputs(axes)]
 
             def fn(*args):
-                return jax.vmap(lambda *a: list(self.fn(*a)), in_axes=axes, out_axes=out_axes)(*args)
+                def split(*a):
+                    out = self.fn(*a)
+                    n = self.unbatched(axes)  # known now: the trace just recorded it
+                    return out[:n], out[n:]
 
-            transpose = None if self.transpose is None else self.transpose.batched(self, axes, size)
-            return Spec(f"{self.name}.vmap", f"{self.name}.vmap" + "-" + _key(self.key, "vmap", axes, size), fn, avals, self.options,
-                        transpose=transpose, errors_off=self.errors_off)
+                head, tail = jax.vmap(split, in_axes=axes, out_axes=(None, 0))(*args) if self.primals else \
+                    jax.vmap(split, in_axes=axes)(*args)
+                return list(head) + list(tail)
+
+            return self._child("vmap", (axes, size), fn, avals)
 
         return self.derive("vmap", (axes, size), make)
 
@@ -260,41 +304,44 @@ class _Forward(Spec):
 
     def __init__(self, parent: Spec, src: Spec, nz: tuple):
         idx = [i for i, z in enumerate(nz) if z]
-        self.parent, self.nz, self.idx, self.box = parent, nz, idx, {}
+        self.parent, self.nz, self.idx, self.res_box = parent, nz, idx, {}
 
         def fn(*primals):
             def of(*v):
                 full = list(primals)
                 for i, x in zip(idx, v):
                     full[i] = x
-                return list(src.fn(*full))
+                return src.fn(*full)
 
             out, vjp = jax.vjp(of, *[primals[i] for i in idx])
-            res, self.box["res_def"] = jtu.tree_flatten(vjp)
+            res, self.res_box["res_def"] = jtu.tree_flatten(vjp)
             return list(out) + [jnp.asarray(r) for r in res]
 
-        super().__init__(f"{parent.name}.fwd", f"{parent.name}.fwd-" + _key(parent.key, "fwd", nz, src.key), fn, parent.in_avals,
+        name = f"{parent.name}.fwd"
+        super().__init__(name, f"{name}-" + _key(parent.key, "fwd", nz, src.key), fn, parent.in_avals,
                          parent.options, errors_off=parent.errors_off)
 
+    @property
+    def n_out(self):
+        return len(self.parent.out_avals)
+
     def res_def(self):
-        if "res_def" not in self.box:  # loaded from disk: trace it for the residuals' structure
+        if "res_def" not in self.res_box:  # loaded from disk: trace it for the residuals' structure
             jax.eval_shape(self.fn, *[_spec_of(a) for a in self.in_avals])
-        return self.box["res_def"]
+        return self.res_box["res_def"]
 
     def lin(self):
         """(*residuals, *tangents) -> output tangents: only ever transposed (reverse mode)."""
 
         def make():
-            n_out = len(self.parent.out_avals)
-            res_avals = self.out_avals[n_out:]
+            res_avals = self.out_avals[self.n_out:]
             avals = res_avals + tuple(_tangent_aval(self.parent.in_avals[i]) for i in self.idx)
 
             def fn(*args):
                 raise NotImplementedError(
                     "nhjax: a linearization made for reverse mode was evaluated forward; use jax.jvp")
 
-            spec = Spec(f"{self.parent.name}.lin", f"{self.parent.name}.lin" + "-" + _key(self.key, "lin"), fn, avals, self.options,
-                        transpose=_LinTranspose(self, len(res_avals)))
+            spec = self._child("lin", (), fn, avals, transpose=_LinTranspose(self, len(res_avals)))
             spec._out_avals = tuple(_tangent_aval(a) for a in self.parent.out_avals if _is_float(a))
             return spec
 
@@ -324,8 +371,7 @@ class _Forward(Spec):
 
             avals = self.out_avals[len(out_avals):] + tuple(
                 _tangent_aval(out_avals[i]) for k, i in enumerate(floats) if ct_nz[k])
-            return Spec(f"{self.parent.name}.bwd", f"{self.parent.name}.bwd" + "-" + _key(self.key, "bwd", ct_nz), fn, avals, self.options,
-                        errors_off=self.errors_off)
+            return self._child("bwd", ct_nz, fn, avals)
 
         return self.derive("bwd", ct_nz, make)
 
@@ -346,13 +392,10 @@ class _LinTranspose:
         out = program_p.bind(*res, *[c for c in cts if type(c) is not ad.Zero], spec=bwd)
         return [None] * len(res) + list(out)
 
-    def batched(self, spec, axes, size):
-        return None
-
 
 class _JvpTranspose:
     """Transpose of ``Spec.jvp`` (linear in its tangents): reverse mode of the parent,
-    for the paths that transpose a JVP (JAX without direct linearization)."""
+    for the paths that transpose a JVP (``jax.linear_transpose`` of ``jax.linearize``)."""
 
     def __init__(self, parent: Spec, nz: tuple):
         self.parent, self.nz = parent, nz
@@ -365,12 +408,9 @@ class _JvpTranspose:
             return [None] * n + [ad.Zero(t.aval) for t in tangents]
         fwd = self.parent.fwd(self.nz)
         outs = program_p.bind(*primals, spec=fwd)
-        res = outs[len(self.parent.out_avals):]
+        res = outs[fwd.n_out:]
         out = program_p.bind(*res, *[c for c in cts if type(c) is not ad.Zero], spec=fwd.bwd(ct_nz))
         return [None] * n + list(out)
-
-    def batched(self, spec, axes, size):
-        return None
 
 
 # ------------------------------------------------------------------ the primitive
@@ -391,47 +431,51 @@ def _lowering(ctx, *args, spec):
     return mlir.lower_fun(lambda *a: exported.call(*a), multiple_results=True)(ctx, *args)
 
 
+def _tangents(spec, touts):
+    """The output tangents: ``touts`` for the float outputs, symbolic zeros elsewhere."""
+    it = iter(touts)
+    return [next(it) if _is_float(a) else ad.Zero(_tangent_aval(a)) for a in spec.out_avals]
+
+
 def _jvp(primals, tangents, *, spec):
     nz = tuple(type(t) is not ad.Zero and _is_float(spec.in_avals[i]) for i, t in enumerate(tangents))
     if not any(nz):
-        return program_p.bind(*primals, spec=spec), [ad.Zero(_tangent_aval(a)) for a in spec.out_avals]
-    floats = [_is_float(a) for a in spec.out_avals]
+        out = program_p.bind(*primals, spec=spec)
+        return out, [ad.Zero(_tangent_aval(a)) for a in spec.out_avals]
     BOUND["jvp"] += 1
     # forward mode: outputs and tangents from one program (the tangents need the
-    # outputs' computation anyway)
+    # outputs' computation anyway); its trace records the outputs' shapes
     outs = program_p.bind(*primals, *[t for t, z in zip(tangents, nz) if z], spec=spec.jvp(nz, True))
     n_out = len(spec.out_avals)
-    touts = iter(outs[n_out:])
-    return outs[:n_out], [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, floats)]
+    return outs[:n_out], _tangents(spec, outs[n_out:])
 
 
 def _linearize(is_vjp, nzs, *primals, spec):
     nz = tuple(bool(z) and _is_float(spec.in_avals[i]) for i, z in enumerate(nzs))
     if not any(nz) or spec.transpose is not None:
         return _fallback_linearize(program_p, is_vjp, nzs, *primals, spec=spec)
-    out_nz = [_is_float(a) for a in spec.out_avals]
-    if not is_vjp:  # jax.linearize: the outputs, and the tangent map as the linear JVP program
+    if not is_vjp or spec.lazy:
+        # jax.linearize, or reverse mode of a program whose outputs seldom get a cotangent
+        # (diagnostics): the outputs from its own program, and the tangent map as the
+        # linear JVP program, whose transpose (reverse mode's programs) runs only for
+        # outputs that do get a cotangent
         lin = spec.jvp(nz)
 
         def linearized(residuals, *tangents):
-            ts = [t for t, z in zip(tangents, nz) if z]
-            touts = iter(program_p.bind(*residuals, *ts, spec=lin))
-            return [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, out_nz)]
+            return _tangents(spec, program_p.bind(*residuals, *[t for t, z in zip(tangents, nz) if z], spec=lin))
 
-        return program_p.bind(*primals, spec=spec), out_nz, list(primals), linearized
+        out = program_p.bind(*primals, spec=spec)
+        return out, [_is_float(a) for a in spec.out_avals], list(primals), linearized
     fwd = spec.fwd(nz)
     BOUND["fwd"] += 1
-    outs = program_p.bind(*primals, spec=fwd)
-    n_out = len(spec.out_avals)
-    out, res = list(outs[:n_out]), list(outs[n_out:])
+    outs = program_p.bind(*primals, spec=fwd)  # (its trace, if any, records the outputs' shapes)
+    n_out = fwd.n_out
     lin = fwd.lin()
 
     def linearized(residuals, *tangents):
-        ts = [t for t, z in zip(tangents, nz) if z]
-        touts = iter(program_p.bind(*residuals, *ts, spec=lin))
-        return [next(touts) if f else ad.Zero(_tangent_aval(a)) for a, f in zip(spec.out_avals, out_nz)]
+        return _tangents(spec, program_p.bind(*residuals, *[t for t, z in zip(tangents, nz) if z], spec=lin))
 
-    return out, out_nz, res, linearized
+    return list(outs[:n_out]), [_is_float(a) for a in spec.out_avals], list(outs[n_out:]), linearized
 
 
 def _transpose(cts, *args, spec):
@@ -445,7 +489,8 @@ def _batch(args, dims, *, spec):
     size = next(a.shape[d] for a, d in zip(args, axes) if d is not None)
     BOUND["vmap"] += 1
     out = program_p.bind(*args, spec=spec.vmap(axes, size))
-    return out, [None if u else 0 for u in spec.unbatched_outputs(axes)]
+    n = spec.unbatched(axes)
+    return out, [None] * n + [0] * (len(out) - n)
 
 
 program_p.def_impl(_impl)
@@ -464,7 +509,7 @@ _SPECS: dict = {}
 
 def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, error_mode: str | None = None,
          forward: Callable | None = None, reverse: Callable | None = None, variant_key=(),
-         fallback: Callable | None = None):
+         lazy: bool = False, fallback: Callable | None = None):
     """``fn(*args)`` through the program cache, under any differentiation of concrete values.
 
     ``fn``: a jax-traceable function returning a pytree of arrays in builtin containers;
@@ -474,7 +519,9 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
     programs (module docstring). ``forward(args)`` / ``reverse(args, nz)``: the
     arguments of the forward- and reverse-mode variants (same array structure; ``nz``:
     ``args`` with True where an array carries a tangent, False elsewhere); default
-    ``args``; ``variant_key``: whatever else the variants depend on (hashable). Anything else (values under jit or vmap, the cache off, an unexportable or
+    ``args``; ``variant_key``: whatever else the variants depend on (hashable). ``lazy``:
+    reverse mode runs the function's own program and differentiates only when a cotangent
+    reaches its outputs (for outputs that are seldom differentiated). Anything else (values under jit or vmap, the cache off, an unexportable or
     unreadable function): ``fallback(*args)`` if given, else ``fn(*args)`` traced into
     the caller's program."""
     leaves = jtu.tree_leaves(args)
@@ -487,6 +534,7 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
     spec = _spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
     if spec is None:
         return plain(*args)
+    spec.lazy = lazy
     dyn = [x for x in leaves if eqx.is_array(x)]
     try:
         BOUND["call"] += 1
@@ -518,61 +566,45 @@ def _spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
     return spec
 
 
-def _flat_fn(fn, args):
-    """``fn`` as a function of the flat list of ``args``'s arrays, and that function's
-    output structure (a box filled when it is traced)."""
+def _flat_fn(fn, args, box):
+    """``fn`` as a function of the flat list of ``args``'s arrays; its output structure
+    goes to ``box`` when it is traced."""
     dyn, static = eqx.partition(args, eqx.is_array)
     dyn_def = jtu.tree_structure(dyn)
-    box = {}
 
     def flat(*lv):
         out = fn(*eqx.combine(jtu.tree_unflatten(dyn_def, list(lv)), static))
         out_leaves, box["out_def"] = jtu.tree_flatten(out)
         return out_leaves
 
-    return flat, box
+    return flat
 
 
 def _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
-    try:
-        key = f"{name}-" + _programs.fingerprint(name, fn, args, error_mode=error_mode)
+    """The Spec of ``fn`` on ``args``: nothing is traced here (the first program that runs
+    traces, and records the outputs' shapes for the others)."""
+    try:  # (the eager path's name: the same program on disk)
+        key = _programs.program_key(name, fn, args, error_mode, options)
     except _programs.Uncacheable:
         _programs.STATS["uncacheable"] += 1
         return None
-    if options:
-        key += "-" + _key(sorted(options.items()))[:12]
-    dyn = [x for x in jtu.tree_leaves(args) if eqx.is_array(x)]
-    avals = [jax.core.ShapedArray(tuple(x.shape), x.dtype) for x in dyn]
+    avals = [jax.core.ShapedArray(tuple(x.shape), x.dtype) for x in jtu.tree_leaves(args) if eqx.is_array(x)]
     off = error_mode == "off"
-    flat, box = _flat_fn(fn, args)
-    spec = Spec(name, key, flat, avals, options, errors_off=off)
-    out_def = _programs.keyed_out_def(key)
-    if out_def is None:
-        try:
-            with _programs.error_checks(not off):
-                exported = _programs.keyed_exported(key, spec.fn, [_spec_of(a) for a in avals], out_box=box)
-        except Exception:  # noqa: BLE001 - the plain path raises the user's own error
-            exported = None
-        if exported is None:
-            return None
-        out_def = _programs.keyed_out_def(key)
-        if out_def is None:
-            return None
-    spec.out_def = out_def
-    if forward is not None:
-        fargs = forward(args)
-        fflat, _ = _flat_fn(fn, fargs)
-        spec.forward = Spec(f"{name}.forward", f"{name}.forward" + "-" + _key(key, "forward", variant_key), fflat, avals, options,
-                            errors_off=off)
+    box = {}
+    spec = Spec(name, key, _flat_fn(fn, args, box), avals, options, errors_off=off, box=box)
+    if forward is not None:  # variants share the box: the same outputs
+        fkey = f"{name}.forward-" + _key(key, "forward", variant_key)
+        spec.forward = Spec(f"{name}.forward", fkey, _flat_fn(fn, forward(args), box), avals, options,
+                            errors_off=off, root=spec, box=box)
     if reverse is not None:
-        dyn_def = jtu.tree_structure(eqx.partition(args, eqx.is_array)[0])
+        dyn, static = eqx.partition(args, eqx.is_array)
+        dyn_def = jtu.tree_structure(dyn)
 
         def reverse_spec(nz):
-            mask = jtu.tree_unflatten(dyn_def, list(nz))
-            rargs = reverse(args, eqx.combine(mask, eqx.partition(args, eqx.is_array)[1]))
-            rflat, _ = _flat_fn(fn, rargs)
-            return Spec(f"{name}.reverse", f"{name}.reverse" + "-" + _key(key, "reverse", nz, variant_key), rflat, avals, options,
-                        errors_off=off)
+            rargs = reverse(args, eqx.combine(jtu.tree_unflatten(dyn_def, list(nz)), static))
+            rkey = f"{name}.reverse-" + _key(key, "reverse", nz, variant_key)
+            return Spec(f"{name}.reverse", rkey, _flat_fn(fn, rargs, box), avals, options, errors_off=off,
+                        root=spec, box=box)
 
         spec.reverse = reverse_spec
     return spec

@@ -322,9 +322,18 @@ def fingerprint(*objs, error_mode: str | None = None) -> str:
     return h.hexdigest()
 
 
+def program_key(name: str, fn: Callable, args: tuple, error_mode: str | None = None, options: dict | None = None):
+    """The name of ``fn``'s program on ``args``'s structure, compiled with ``options``
+    (raises Uncacheable)."""
+    key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
+    if options:
+        key += "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
+    return key
+
+
 def _store(path: Path, data: bytes):
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
+    tmp = path.with_name(f"{path.name}.tmp{os.getpid()}-{threading.get_ident()}")
     tmp.write_bytes(data)
     os.replace(tmp, path)
     files = sorted([*path.parent.glob("*.prog"), *path.parent.glob("*.exe")], key=lambda p: p.stat().st_mtime)
@@ -356,9 +365,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     if program is not None:
         return None if program is _FAILED else program
     try:
-        key = f"{name}-{fingerprint(name, fn, args, error_mode=error_mode)}"
-        if options:
-            key += "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
+        key = program_key(name, fn, args, error_mode, options)
     except Uncacheable:
         STATS["uncacheable"] += 1
         if quick is not None:
@@ -405,11 +412,42 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
 _EXPORTED: dict[str, Any] = {}
 
 
-def keyed_out_def(key: str):
-    """The output structure of the program stored under ``key`` (in memory or on disk),
-    or None."""
-    program = _keyed_program(key)
-    return None if program is None else program[1]
+_META: dict[str, Any] = {}
+
+
+def keyed_meta(key: str):
+    """(output structure or None, [(shape, dtype), ...]) of the program named ``key``, as
+    recorded by a trace in this process or an earlier one (``store_meta``); None if
+    unknown."""
+    with _LOCK:
+        meta = _META.get(key)
+    if meta is None:
+        folder = directory()
+        if folder is None:
+            return None
+        try:
+            meta = pickle.loads((folder / f"{key}.meta").read_bytes())
+        except Exception:  # noqa: BLE001 - absent or damaged: trace
+            return None
+        with _LOCK:
+            _META[key] = meta
+    return meta
+
+
+def store_meta(key: str, out_def, avals):
+    """Record a program's output structure and shapes (kept beside the programs)."""
+    meta = (out_def if out_def is None or _portable(out_def) else None,
+            [(tuple(a.shape), np.dtype(a.dtype).str) for a in avals])
+    with _LOCK:
+        if key in _META:
+            return
+        _META[key] = meta
+    folder = directory()
+    if folder is not None and (meta[0] is not None or out_def is None):
+        try:
+            _store(folder / f"{key}.meta", pickle.dumps(meta))
+        except (OSError, pickle.PicklingError, TypeError):
+            pass
 
 
 def _keyed_program(key: str):
@@ -424,18 +462,19 @@ def _keyed_program(key: str):
     return None if program is _FAILED else program
 
 
-def keyed_exported(key: str, flat_fn: Callable, specs, out_box: dict | None = None):
+def keyed_exported(key: str, flat_fn: Callable, specs, out_def: Callable | None = None):
     """The ``jax.export.Exported`` of ``flat_fn`` (a function of a flat list of arrays
     returning a flat list) on ``specs``, from memory, disk or exported now and stored;
-    None when export refuses it. ``out_box``: filled by ``flat_fn`` with its output
-    structure when traced (default: the flat list)."""
+    None when export refuses it. ``out_def()``: the caller's output structure once
+    ``flat_fn`` is traced (kept with the program, as ``call`` keeps it; default the flat
+    list)."""
     program = _keyed_program(key)
     if program is None:
         with _LOCK:
             if _EXPORTED.get(key) is _FAILED:
                 return None
         folder = directory()
-        program = _export_flat(flat_fn, specs, None if folder is None else folder / f"{key}.prog", out_box)
+        program = _export_flat(flat_fn, specs, None if folder is None else folder / f"{key}.prog", out_def)
         with _LOCK:
             _EXPORTED[key] = program
         if program is _FAILED:
@@ -443,7 +482,8 @@ def keyed_exported(key: str, flat_fn: Callable, specs, out_box: dict | None = No
     return program[0]
 
 
-def keyed_executable(key: str, flat_fn: Callable, specs, options: dict | None = None):
+def keyed_executable(key: str, flat_fn: Callable, specs, options: dict | None = None,
+                     out_def: Callable | None = None):
     """A callable running the program stored under ``key`` on flat arrays (returning a
     flat list): its executable from memory or disk, or ``keyed_exported`` compiled with
     ``options`` and stored; None when export refuses it."""
@@ -452,12 +492,11 @@ def keyed_executable(key: str, flat_fn: Callable, specs, options: dict | None = 
     with _LOCK:
         program = _MEMORY.get(mem)
     if program is None:
-        folder = directory()
-        suffix = "" if not options else "-" + hashlib.sha256(repr(sorted(options.items())).encode()).hexdigest()[:12]
-        exe_path = None if folder is None else folder / f"{key}{suffix}-{_machine()}.exe"
+        folder = directory()  # (the options are in the key: see options_key)
+        exe_path = None if folder is None else folder / f"{key}-{_machine()}.exe"
         program = _load_executable(exe_path) if exe_path is not None else None
         if program is None:
-            exported = keyed_exported(key, flat_fn, specs)
+            exported = keyed_exported(key, flat_fn, specs, out_def)
             if exported is None:
                 return None
             program = _compile((exported, _keyed_program(key)[1]), specs, options, exe_path)
@@ -467,16 +506,15 @@ def keyed_executable(key: str, flat_fn: Callable, specs, options: dict | None = 
     return lambda *a: exe(*a)
 
 
-def _export_flat(flat_fn, specs, path: Path | None, out_box: dict | None = None):
+def _export_flat(flat_fn, specs, path: Path | None, out_def: Callable | None = None):
     """``flat_fn`` exported on ``specs`` and stored at ``path``: (exported, out treedef),
     or ``_FAILED``."""
-    box = out_box if out_box is not None else {}
+    box = {}
     specs = list(specs)
 
     def traced(*lv):
         out = flat_fn(*lv)
-        if out_box is None:
-            box["out_def"] = jtu.tree_structure(list(out))
+        box["out_def"] = jtu.tree_structure(list(out))
         return out
 
     try:
@@ -489,7 +527,7 @@ def _export_flat(flat_fn, specs, path: Path | None, out_box: dict | None = None)
             traceback.print_exc()
         STATS["uncacheable"] += 1
         return _FAILED
-    out_def = box["out_def"]
+    out_def = (out_def and out_def()) or box["out_def"]
     if path is not None and _portable(out_def):
         try:
             _store(path, pickle.dumps((out_def, bytes(exported.serialize()))))

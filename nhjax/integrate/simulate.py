@@ -150,6 +150,9 @@ class _Static:
     # a projected solve's saved states are projected in its program; False: the caller
     # projects them (an eager call, in its second program: see simulate)
     project_saved: bool = True
+    # the solve as one compiled function (one_function.py); off where it only adds tracing:
+    # the forward pass of reverse mode differentiates the unwrapped program anyway
+    one_function: bool = True
 
 
 def _is_traced(*trees) -> bool:
@@ -444,7 +447,8 @@ TRACES = collections.Counter()
 
 def _solve_impl(system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0, static: _Static, show=False):
     TRACES["solve"] += 1
-    if not static.progress and isinstance(adjoint, (diffrax.RecursiveCheckpointAdjoint, DiscreteAdjoint)):
+    if (static.one_function and not static.progress
+            and isinstance(adjoint, (diffrax.RecursiveCheckpointAdjoint, DiscreteAdjoint))):
         # one compiled function instead of a kernel sequence (see one_function); not for
         # adjoints that support forward mode, which a custom VJP would block
         return as_one_function(_solve_body, system, control, x0, t0, t1, ts, solver, controller, adjoint, dt0,
@@ -515,13 +519,15 @@ def _reverse_variant(adjoint_given, on_guard, args, nz):
     few forward solves, where differentiating diffrax's loop costs a hundred or more)
     whenever it applies: an explicit solver, times and save times not differentiated, no
     chart guard that may stop the solve (whose event time it holds fixed)."""
-    adjoint, solver = args[8], args[6]
+    adjoint, solver, static = args[8], args[6], args[10]
+    static = dataclasses.replace(static, one_function=False)
+    keep = (*args[:10], static, *args[11:])
     if adjoint_given or not isinstance(adjoint, diffrax.RecursiveCheckpointAdjoint):
-        return args
+        return keep
     times = any(jtu.tree_leaves((nz[3], nz[4], nz[5], nz[9])))
-    if times or not _is_explicit(solver) or (on_guard == "stop" and args[10].guard_names):
-        return args
-    return (*args[:8], DiscreteAdjoint(max_steps=args[10].max_steps), *args[9:])
+    if times or not _is_explicit(solver) or (on_guard == "stop" and static.guard_names):
+        return keep
+    return (*args[:8], DiscreteAdjoint(max_steps=static.max_steps), args[9], static, *args[11:])
 
 
 def _saved_eager(system, control, x0, t0, ts, xs, t_final, x_end, work, track, project, diagnostics):
@@ -916,7 +922,8 @@ def simulate(
             xs, x_end, diag = _primitive.call(
                 "diagnose", _saved_eager,
                 (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.x_end, traj.work, track,
-                 project_saved, static.diagnostics), error_mode="off", options=_programs.QUICK_OPTIONS)
+                 project_saved, static.diagnostics), error_mode="off", options=_programs.QUICK_OPTIONS,
+                lazy=not project_saved)  # (a projection's states are differentiated: the loss reads them)
             if project_saved:  # (else the same arrays: the solve's stay, for a shorter derivative)
                 traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
             if static.diagnostics:
