@@ -145,6 +145,7 @@ class Spec:
         self._derived = {}
         self.primals = None  # a JVP program with its outputs: (inputs, the parent) whose outputs come first
         self.lazy = False  # reverse mode through the JVP's transpose, only where a cotangent comes
+        self.max_tangents = 0  # reverse mode in up to this many input numbers: by forward mode
 
         def traced(*args):
             with _programs.error_checks(not errors_off):
@@ -217,8 +218,11 @@ class Spec:
         return spec
 
     def _child(self, kind, params, fn, avals, **kw):
+        """A derived program, named by its parent's name (a variant's, where the program
+        is built from one: see ``params``) and what derives it."""
         name = f"{self.name}.{kind}"
-        return Spec(name, f"{name}-" + _key(self.key, kind, params), fn, avals, self.options,
+        base = self.key if self.forward is None or kind != "jvp" else ""
+        return Spec(name, f"{name}-" + _key(base, kind, params), fn, avals, self.options,
                     errors_off=self.errors_off, **kw)
 
     # ---------------------------------------------------- derived programs
@@ -245,7 +249,7 @@ class Spec:
                 return list(out) + touts if with_primal else touts
 
             avals = self.in_avals + tuple(_tangent_aval(self.in_avals[i]) for i in idx)
-            spec = self._child("jvp", (nz, with_primal), fn, avals,
+            spec = self._child("jvp", (nz, with_primal, src.key), fn, avals,
                                transpose=None if with_primal else _JvpTranspose(self, nz))
             if with_primal:
                 spec.primals = (len(nz), self)
@@ -318,7 +322,7 @@ class _Forward(Spec):
             return list(out) + [jnp.asarray(r) for r in res]
 
         name = f"{parent.name}.fwd"
-        super().__init__(name, f"{name}-" + _key(parent.key, "fwd", nz, src.key), fn, parent.in_avals,
+        super().__init__(name, f"{name}-" + _key("fwd", nz, src.key), fn, parent.in_avals,
                          parent.options, errors_off=parent.errors_off)
 
     @property
@@ -466,6 +470,9 @@ def _linearize(is_vjp, nzs, *primals, spec):
 
         out = program_p.bind(*primals, spec=spec)
         return out, [_is_float(a) for a in spec.out_avals], list(primals), linearized
+    sizes = [int(np.prod(spec.in_avals[i].shape)) for i, z in enumerate(nz) if z]
+    if sum(sizes) <= spec.max_tangents:
+        return _linearize_by_tangents(spec, nz, sizes, primals)
     fwd = spec.fwd(nz)
     BOUND["fwd"] += 1
     outs = program_p.bind(*primals, spec=fwd)  # (its trace, if any, records the outputs' shapes)
@@ -476,6 +483,31 @@ def _linearize(is_vjp, nzs, *primals, spec):
         return _tangents(spec, program_p.bind(*residuals, *[t for t, z in zip(tangents, nz) if z], spec=lin))
 
     return list(outs[:n_out]), [_is_float(a) for a in spec.out_avals], list(outs[n_out:]), linearized
+
+
+def _linearize_by_tangents(spec, nz, sizes, primals):
+    """Reverse mode in few inputs by forward mode (see ``call``): the outputs and their
+    Jacobian in the D input numbers from the batched JVP program; the tangent map, the
+    Jacobian's product with the tangents, is ordinary (transposable) JAX."""
+    D = sum(sizes)
+    idx = [i for i, z in enumerate(nz) if z]
+    basis, start = [], 0
+    for i, size in zip(idx, sizes):  # the unit vectors of the D numbers, input by input
+        e = np.zeros((D, size))
+        e[start:start + size] = np.eye(size)
+        basis.append(jnp.asarray(e.reshape((D,) + tuple(spec.in_avals[i].shape)), spec.in_avals[i].dtype))
+        start += size
+    BOUND["jvp"] += 1
+    jac = spec.jvp(nz, True).vmap((None,) * len(nz) + (0,) * len(idx), D)
+    outs = program_p.bind(*primals, *basis, spec=jac)
+    n_out = len(spec.out_avals)
+    out_nz = [_is_float(a) for a in spec.out_avals]
+
+    def linearized(J, *tangents):
+        t = jnp.concatenate([jnp.reshape(tangents[i], (-1,)) for i in idx])
+        return _tangents(spec, [jnp.tensordot(t, j, axes=1) for j in J])
+
+    return list(outs[:n_out]), out_nz, list(outs[n_out:]), linearized
 
 
 def _transpose(cts, *args, spec):
@@ -509,7 +541,7 @@ _SPECS: dict = {}
 
 def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, error_mode: str | None = None,
          forward: Callable | None = None, reverse: Callable | None = None, variant_key=(),
-         lazy: bool = False, fallback: Callable | None = None):
+         lazy: bool = False, max_tangents: int = 0, fallback: Callable | None = None):
     """``fn(*args)`` through the program cache, under any differentiation of concrete values.
 
     ``fn``: a jax-traceable function returning a pytree of arrays in builtin containers;
@@ -521,7 +553,12 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
     ``args`` with True where an array carries a tangent, False elsewhere); default
     ``args``; ``variant_key``: whatever else the variants depend on (hashable). ``lazy``:
     reverse mode runs the function's own program and differentiates only when a cotangent
-    reaches its outputs (for outputs that are seldom differentiated). Anything else (values under jit or vmap, the cache off, an unexportable or
+    reaches its outputs (for outputs that are seldom differentiated). ``max_tangents``:
+    reverse mode in at most that many input numbers runs forward mode instead (the JVP
+    program batched over the input basis, the program ``jax.jacfwd`` runs, and the
+    backward pass a product with that Jacobian): for a solve, as many tangent solves as
+    inputs instead of a recording forward pass and a backward one, and one compiled
+    program for both modes. Anything else (values under jit or vmap, the cache off, an unexportable or
     unreadable function): ``fallback(*args)`` if given, else ``fn(*args)`` traced into
     the caller's program."""
     leaves = jtu.tree_leaves(args)
@@ -534,7 +571,7 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
     spec = _spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
     if spec is None:
         return plain(*args)
-    spec.lazy = lazy
+    spec.lazy, spec.max_tangents = lazy, int(max_tangents)
     dyn = [x for x in leaves if eqx.is_array(x)]
     try:
         BOUND["call"] += 1
@@ -593,8 +630,11 @@ def _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_ke
     box = {}
     spec = Spec(name, key, _flat_fn(fn, args, box), avals, options, errors_off=off, box=box)
     if forward is not None:  # variants share the box: the same outputs
-        fkey = f"{name}.forward-" + _key(key, "forward", variant_key)
-        spec.forward = Spec(f"{name}.forward", fkey, _flat_fn(fn, forward(args), box), avals, options,
+        # named by what they are (calls that differ only in what their variants replace,
+        # e.g. the adjoint, share them and the programs derived from them)
+        fargs = forward(args)
+        fkey = _programs.program_key(f"{name}.forward", fn, fargs, error_mode, options)
+        spec.forward = Spec(f"{name}.forward", fkey, _flat_fn(fn, fargs, box), avals, options,
                             errors_off=off, root=spec, box=box)
     if reverse is not None:
         dyn, static = eqx.partition(args, eqx.is_array)
@@ -602,7 +642,7 @@ def _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_ke
 
         def reverse_spec(nz):
             rargs = reverse(args, eqx.combine(jtu.tree_unflatten(dyn_def, list(nz)), static))
-            rkey = f"{name}.reverse-" + _key(key, "reverse", nz, variant_key)
+            rkey = _programs.program_key(f"{name}.reverse", fn, rargs, error_mode, options)
             return Spec(f"{name}.reverse", rkey, _flat_fn(fn, rargs, box), avals, options, errors_off=off,
                         root=spec, box=box)
 

@@ -239,6 +239,11 @@ def _solve_plain(system, x0, t1, t0, ts, solver, rtol, atol, dt0, dtmax, max_ste
     return {k: getattr(tr, k) for k in _FIELDS}
 
 
+#: reverse mode in at most this many numbers runs forward mode (nhjax._primitive.call):
+#: the event loop's tangents compile in a fraction of the checkpointed loop's backward pass
+_MAX_TANGENTS = 4
+
+
 def _with_adjoint(adjoint, args, nz=None):
     """``_solve_plain``'s arguments with another adjoint (the same values): "forward" for
     jax.jvp / jax.jacfwd, "reverse" for jax.grad / jax.jacrev."""
@@ -867,8 +872,11 @@ def simulate_impacts(
     args = (system, x0, arr(t1), arr(t0), ts, solver, arr(rtol), arr(atol), arr(dt0), arr(dtmax), int(max_steps),
             int(max_impacts), arr(rest_velocity), arr(graze_tol), arr(release_tol), int(event_samples), adjoint)
     if known:
+        # XLA's older loop emitters (SOLVE_OPTIONS): the event loop compiles in about half
+        # the time and runs no slower (benchmarks/compile_times.py)
         out = _primitive.call("impacts", _solve_plain, args, forward=functools.partial(_with_adjoint, "forward"),
                               reverse=functools.partial(_with_adjoint, "reverse"),
+                              options=_programs.SOLVE_OPTIONS, max_tangents=_MAX_TANGENTS,
                               fallback=lambda *a: _solve_plain_jit(*a))
         traj = ImpactTrajectory(**out, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()))
     else:
@@ -1026,7 +1034,7 @@ def _lockstep_chunk_plain(*args):
 
 def _lockstep_chunk(*args):
     """``_lockstep_chunk_impl`` as a stored program (a new process loads it, traces nothing)."""
-    out = _programs.call("impacts-batch", _lockstep_chunk_plain, args,
+    out = _programs.call("impacts-batch", _lockstep_chunk_plain, args, compiler_options=_programs.SOLVE_OPTIONS,
                          fallback=lambda *a: _lockstep_chunk_plain_jit(*a))
     system = args[0]
     return ImpactTrajectory(**out, n=system.n, state_names=tuple(getattr(system, "state_names", ()) or ()))

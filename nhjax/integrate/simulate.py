@@ -502,6 +502,10 @@ def _solve_cached(*args, adjoint_given=True, on_guard="raise"):
                                        options=_programs.SOLVE_OPTIONS, forward=_forward_variant,
                                        reverse=functools.partial(_reverse_variant, adjoint_given, on_guard),
                                        variant_key=(adjoint_given, on_guard),
+                                       # the default adjoint: reverse mode in up to 4 numbers by
+                                       # forward mode (as DiscreteAdjoint's "tangents"), with
+                                       # jax.jacfwd's program
+                                       max_tangents=0 if adjoint_given else DiscreteAdjoint().max_tangents,
                                        fallback=lambda *a: _to_plain(_solve(*a))),
                        static.state_names)
 
