@@ -299,7 +299,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
 
     def kkt(t, x, persistent):
         q, qd = split(x)
-        return _contact_kkt(system, t, q, qd, persistent)
+        return _kkt_once(system, t, q, qd, persistent)
 
     def vf(t, y, args):
         persistent = args
@@ -729,6 +729,9 @@ def _concrete(*trees) -> bool:
 
 
 _solve_jit = eqx.filter_jit(solve_impacts)
+#: the contact KKT solve (vector field, events, jumps) as a nested jit: traced once per
+#: solve (and differentiated once under jvp) instead of at each of its call sites
+_kkt_once = eqx.filter_jit(_contact_kkt)
 _solve_plain_jit = eqx.filter_jit(_solve_plain)
 
 
