@@ -1,4 +1,5 @@
-"""Time to the first simulate() per scene, cold and warm (goals: < 3 s cold, < 0.5 s warm).
+"""Time to the first answer per scene and per public path, cold and warm (goals: < 3 s
+cold, < 0.5 s warm).
 
 Each scene runs in fresh Python processes, from a representative state with
 default settings (rtol = atol = 1e-8, 101 saved times, diagnostics on), with
@@ -19,8 +20,16 @@ directory:
 
 Beside the registry's scenes, a system as a researcher writes it through
 ``nhjax.mechanics.Lagrangian``: a six-link wheeled snake (8 coordinates, 5
-knife-edge constraints); and the first ``simulate_batch()`` of a process (the cat,
-256 members of unequal length; "steps" is then the longest member's).
+knife-edge constraints); the first ``simulate_batch()`` of a process (the cat,
+256 members of unequal length; "steps" is then the longest member's); and every
+other public path a notebook user takes (``PATH_CASES``): gradients around
+``simulate`` in reverse and forward mode on its defaults (eager and under
+``jax.jit``), an impact solve, its derivatives in both modes, an impact batch, a
+reduced chain's solve and body states, a curvature integral. A path's row times its
+whole first call (``call``), steps -1. Under ``jax.jit`` the program holds
+simulate's runtime checks (host callbacks), which JAX's persistent cache does not
+keep: its warm row compiles the program again (nothing of the solve is traced);
+with ``EQX_ON_ERROR=nan`` it is kept too.
 
 Writes experiments/out/bench/compile_times.{json,csv,png} and prints the table
 with the load average at start and end (the machine may be shared).
@@ -129,6 +138,14 @@ def loss(amp):
     return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
 amp = jnp.array([0.04, 0.02])
 call = lambda: jax.jacfwd(loss)(amp)""",
+    "jax.jit(jax.grad) through simulate (FallingCat, defaults)": """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
+import jax.numpy as jnp
+def loss(amp):
+    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
+    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
+amp = jnp.array([0.04, 0.02])
+call = (lambda f: lambda: f(amp))(jax.jit(jax.grad(loss)))""",
     "jax.grad through simulate (DiscreteAdjoint)": """
 system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
 import jax.numpy as jnp
@@ -256,7 +273,7 @@ def plot(rows, path):
     ax.set_yticks(y, names)
     ax.axvline(3.0, color="k", ls="--", lw=1, label="goals: 3 s cold, 0.5 s warm")
     ax.axvline(0.5, color="k", ls=":", lw=1)
-    ax.set(xlabel="seconds", title="simulate(): first call per scene (fresh processes)")
+    ax.set(xlabel="seconds", title="first answer per scene and path (fresh processes)")
     ax.invert_yaxis()
     ax.legend(loc="lower right")
     fig.tight_layout()

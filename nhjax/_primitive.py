@@ -148,7 +148,7 @@ class Spec:
         self.max_tangents = 0  # reverse mode in up to this many input numbers: by forward mode
 
         def traced(*args):
-            with _programs.error_checks(not errors_off):
+            with _programs.error_checks(not errors_off), _programs.stored_trace():
                 out = list(fn(*args))
             self._record(out)
             return out
@@ -181,8 +181,13 @@ class Spec:
                 self._out_avals = tuple(jax.core.ShapedArray(shape, np.dtype(dt)) for shape, dt in meta[1])
                 if meta[0] is not None:
                     self.box.setdefault("out_def", meta[0])
-            else:
-                jax.eval_shape(self.fn, *[_spec_of(a) for a in self.in_avals])
+            else:  # exported now (what a jit's lowering needs next anyway), or loaded
+                exported = self.exported()
+                if self._out_avals is None:  # loaded: no trace recorded them
+                    self._out_avals = tuple(jax.core.ShapedArray(a.shape, a.dtype) for a in exported.out_avals)
+                    out_def = _programs.keyed_out_def(self.key)
+                    if out_def is not None and out_def.num_leaves == len(self._out_avals) and self.root is None:
+                        self.box.setdefault("out_def", out_def)
         return self._out_avals
 
     @property
@@ -566,7 +571,8 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
         return _programs.call(name, fn, args, error_mode=error_mode, fallback=fallback, compiler_options=options)
     plain = fallback or fn
     if (_to_concrete is None or _programs.directory() is None or jax.config.jax_disable_jit
-            or not has_values(args)):
+            or _programs.tracing_stored()):
+        # (inside a stored program's own trace a nested one would only add a layer)
         return plain(*args)
     spec = _spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
     if spec is None:

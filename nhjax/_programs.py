@@ -322,6 +322,25 @@ def fingerprint(*objs, error_mode: str | None = None) -> str:
     return h.hexdigest()
 
 
+_TRACING = threading.local()
+
+
+@contextlib.contextmanager
+def stored_trace():
+    """Marks the trace of a program that is being stored (its calls of other stored
+    programs are traced into it: ``tracing_stored``)."""
+    _TRACING.depth = getattr(_TRACING, "depth", 0) + 1
+    try:
+        yield
+    finally:
+        _TRACING.depth -= 1
+
+
+def tracing_stored() -> bool:
+    """Whether this thread is tracing a program to be stored (``stored_trace``)."""
+    return getattr(_TRACING, "depth", 0) > 0
+
+
 def program_key(name: str, fn: Callable, args: tuple, error_mode: str | None = None, options: dict | None = None):
     """The name of ``fn``'s program on ``args``'s structure, compiled with ``options``
     (raises Uncacheable)."""
@@ -448,6 +467,12 @@ def store_meta(key: str, out_def, avals):
             _store(folder / f"{key}.meta", pickle.dumps(meta))
         except (OSError, pickle.PicklingError, TypeError):
             pass
+
+
+def keyed_out_def(key: str):
+    """The output structure kept with the program named ``key`` (None if not stored)."""
+    program = _keyed_program(key)
+    return None if program is None else program[1]
 
 
 def _keyed_program(key: str):
@@ -909,7 +934,8 @@ def _export(fn, static, dyn_def, leaves, path: Path):
     box = {}
 
     def flat(*lv):
-        out = fn(*eqx.combine(jtu.tree_unflatten(dyn_def, lv), static))
+        with stored_trace():
+            out = fn(*eqx.combine(jtu.tree_unflatten(dyn_def, lv), static))
         out_leaves, box["out_def"] = jtu.tree_flatten(out)
         return out_leaves
 

@@ -534,6 +534,25 @@ def _reverse_variant(adjoint_given, on_guard, args, nz):
     return (*args[:8], DiscreteAdjoint(max_steps=static.max_steps), args[9], static, *args[11:])
 
 
+def _with_diagnostics(traj, system, control, x0, t0a, static):
+    """``traj`` (a solve without them) with its saved states projected (a projected solve)
+    and its diagnostics, from the second program (``_saved_eager``)."""
+    project_saved = static.project_steps
+    if not (project_saved or static.diagnostics):
+        return traj
+    xs, x_end, diag = _primitive.call(
+        "diagnose", _saved_eager,
+        (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.x_end, traj.work, static.track_work,
+         project_saved, static.diagnostics), error_mode="off", options=_programs.QUICK_OPTIONS,
+        lazy=not project_saved)  # (a projection's states are differentiated: the loss reads them)
+    if project_saved:  # (else the same arrays: the solve's stay, for a shorter derivative)
+        traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
+    if static.diagnostics:
+        invariants, drift, cons, us = diag
+        traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift, constraint_drift=cons, us=us)
+    return traj
+
+
 def _saved_eager(system, control, x0, t0, ts, xs, t_final, x_end, work, track, project, diagnostics):
     """An eager call's second program, run on the solve's saved states: their
     projection (``project``: a projected solve) and the diagnostics, traced without
@@ -882,10 +901,19 @@ def simulate(
     # _configure made them (eager: raised; traced: runtime errors outside the solve), so
     # the solve has no host callback and compiles into one function (see one_function)
     static = dataclasses.replace(static, runtime_checks=False)
-    if traced:
+    if traced and (static.progress or _programs.directory() is None or _programs.tracing_stored()):
+        # traced into the caller's program (inside a stored program's own trace, e.g. an
+        # optimal-control solver's; with the cache off; with a progress bar's callback)
         static = dataclasses.replace(static, error_mode=_programs._error_mode())
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
+    elif traced:
+        # under the user's jit or vmap: the stored programs, inlined by XLA (nothing of the
+        # solve is traced); the checks are runtime errors (_runtime_checks)
+        core = dataclasses.replace(static, diagnostics=False, project_saved=False)
+        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
+                             show, adjoint_given=adjoint_given, on_guard=on_guard)
+        traj = _with_diagnostics(traj, system, control, x0, t0a, static)
     else:
         # Eager call: the diagnostics, and a projected solve's projection of its saved
         # states, are a second program, run on the solution (_saved_eager).
@@ -920,20 +948,9 @@ def simulate(
                                        static.diagnostics)
         traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
                              show, adjoint_given=adjoint_given, on_guard=on_guard)
-        if second:
-            if warm is not None:
-                warm.result()
-            xs, x_end, diag = _primitive.call(
-                "diagnose", _saved_eager,
-                (system, control, x0, t0a, traj.ts, traj.xs, traj.t_final, traj.x_end, traj.work, track,
-                 project_saved, static.diagnostics), error_mode="off", options=_programs.QUICK_OPTIONS,
-                lazy=not project_saved)  # (a projection's states are differentiated: the loss reads them)
-            if project_saved:  # (else the same arrays: the solve's stay, for a shorter derivative)
-                traj = dataclasses.replace(traj, xs=xs, x_end=x_end)
-            if static.diagnostics:
-                invariants, drift, cons, us = diag
-                traj = dataclasses.replace(traj, invariants=invariants, invariant_drift=drift,
-                                           constraint_drift=cons, us=us)
+        if warm is not None:
+            warm.result()
+        traj = _with_diagnostics(traj, system, control, x0, t0a, static)
     if traced:
         span = time_span_check(t0, t1, owner="simulate") if _is_traced(t0, t1) else None
         return _runtime_checks(traj, static, on_guard, span)
