@@ -18,6 +18,10 @@ least recently used entries). JAX keys each entry by the program, the compiler
 options and flags and the jax/jaxlib versions, so a stale entry is never used.
 What this cache cannot keep is tracing and lowering, which every new process would
 do again: nhjax keeps its traced programs beside it (``_programs.py``).
+
+The directory is trusted like code (JAX loads executables from it): it is created
+0700, and one that another user owns or that group/others can write is refused with a
+warning (both caches stay off).
 """
 
 from __future__ import annotations
@@ -35,6 +39,14 @@ def default_dir(environ=os.environ) -> str:
     return os.path.join(base, "nhjax", "xla")
 
 
+def _own(path: str) -> bool:
+    """Whether ``path`` is this user's and only this user can write it."""
+    if not hasattr(os, "getuid"):
+        return True
+    st = os.stat(path)
+    return st.st_uid == os.getuid() and not st.st_mode & 0o022
+
+
 def configure(environ=os.environ) -> str | None:
     """Turn JAX's persistent cache on (see the module docstring). Returns the directory
     in use, or None when it is off."""
@@ -46,8 +58,16 @@ def configure(environ=os.environ) -> str | None:
         return current
     path = raw or default_dir(environ)
     try:
-        os.makedirs(path, exist_ok=True)
+        os.makedirs(path, exist_ok=True, mode=0o700)
     except OSError:  # read-only home, say: no cache rather than no nhjax
+        return None
+    if not _own(path):
+        import warnings
+
+        warnings.warn(f"nhjax: the cache directory {path} belongs to another user or is writable by "
+                      "group/others; JAX's compilation cache and nhjax's programs stay off (the cache "
+                      "directory is trusted like code: point NHJAX_CACHE_DIR at a directory of your own)",
+                      RuntimeWarning, stacklevel=2)
         return None
     jax.config.update("jax_compilation_cache_dir", path)
     min_s = float(environ.get("NHJAX_CACHE_MIN_SECONDS", DEFAULT_MIN_SECONDS))

@@ -34,6 +34,14 @@ nothing changes.
 
 Files live in ``<compilation cache>/nhjax-programs`` (``NHJAX_CACHE_DIR``; ``=0``
 turns both caches off), capped at ``MAX_BYTES`` (oldest files go first).
+
+The cache directory is trusted like code: an executable is machine code, and JAX's
+serialized executables are pickles. Directories are created 0700; a file is read back
+only if this user owns it and its directory and neither group nor others can write
+that directory (``trusted``; otherwise it is ignored with one warning, and the program
+traced again); output structures are written as JSON where they are builtin
+containers (pickle only for others, such as equinox modules). ``nhjax._cache`` leaves
+JAX's compilation cache off on a directory that fails the same test.
 """
 
 from __future__ import annotations
@@ -46,6 +54,7 @@ import functools
 import gc
 import hashlib
 import importlib.metadata
+import json
 import os
 import pickle
 import threading
@@ -59,7 +68,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-FORMAT = 1
+FORMAT = 2
 MAX_BYTES = 256 * 2**20
 #: Modules whose classes and functions are identified by name (their code is covered
 #: by the versions and the source hash in the key).
@@ -351,7 +360,7 @@ def program_key(name: str, fn: Callable, args: tuple, error_mode: str | None = N
 
 
 def _store(path: Path, data: bytes):
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}-{threading.get_ident()}")
     tmp.write_bytes(data)
     os.replace(tmp, path)
@@ -434,6 +443,110 @@ _EXPORTED: dict[str, Any] = {}
 _META: dict[str, Any] = {}
 
 
+# ------------------------------------------------------------------ what is read back
+# The cache directory is trusted like code: an executable is machine code, and JAX's
+# serialized executables (and output structures JSON cannot hold) are unpickled. So
+# nhjax reads a file only if the user owns it and its directory, and no one else can
+# write that directory (``trusted``); what it writes itself is JSON where it can be.
+_WARNED: set = set()
+
+
+def trusted(path: Path) -> bool:
+    """Whether ``path`` may be read back: owned by this user, in a directory this user
+    owns that neither group nor others can write. Warns once per directory otherwise."""
+    try:
+        st, dst = path.stat(), path.parent.stat()
+    except OSError:
+        return False
+    uid = os.getuid() if hasattr(os, "getuid") else None
+    ok = uid is None or (st.st_uid == uid and dst.st_uid == uid and not dst.st_mode & 0o022)
+    if not ok and str(path.parent) not in _WARNED:
+        _WARNED.add(str(path.parent))
+        import warnings
+
+        warnings.warn(
+            f"nhjax: ignoring files in the program cache {path.parent} that another user owns or "
+            "could have written (owner, or a directory writable by group/others): the cache "
+            "directory is trusted like code. Point NHJAX_CACHE_DIR at a directory of your own "
+            "(mode 700), or NHJAX_CACHE_DIR=0 to turn the caches off.", RuntimeWarning, stacklevel=3)
+    return ok
+
+
+def _read(path: Path) -> bytes | None:
+    """The bytes of a cache file, if present and ``trusted``."""
+    if not path.exists() or not trusted(path):
+        return None
+    try:
+        return path.read_bytes()
+    except OSError:
+        return None
+
+
+def treedef_to_json(td):
+    """A PyTreeDef of None, tuples, lists, dicts with string keys and leaves as JSON
+    (raises TypeError for anything else)."""
+    if td.num_nodes == 1 and td.num_leaves == 1 and not td.children():
+        return "*"
+    node_type, data = td.node_data()
+    kids = [treedef_to_json(c) for c in td.children()]
+    if node_type is type(None):
+        return None
+    if node_type is tuple:
+        return {"tuple": kids}
+    if node_type is list:
+        return {"list": kids}
+    if node_type is dict and all(isinstance(k, str) for k in data):
+        return {"dict": [list(data), kids]}
+    raise TypeError(f"no JSON for {node_type.__name__} nodes")
+
+
+def _skeleton(j):
+    if j == "*":
+        return 0
+    if j is None:
+        return None
+    if "tuple" in j:
+        return tuple(_skeleton(c) for c in j["tuple"])
+    if "list" in j:
+        return [_skeleton(c) for c in j["list"]]
+    keys, kids = j["dict"]
+    return {k: _skeleton(c) for k, c in zip(keys, kids)}
+
+
+def treedef_from_json(j):
+    return jtu.tree_structure(_skeleton(j))
+
+
+def _pack(head: dict, out_def, body: bytes = b"") -> bytes:
+    """A cache file: one line of JSON (``head``, the output structure as JSON or, where
+    JSON cannot hold it, its pickle's length), the pickle if any, then ``body``."""
+    head = dict(head, format=FORMAT)
+    pickled = b""
+    if out_def is not None:
+        try:
+            head["out_def"] = treedef_to_json(out_def)
+        except TypeError:
+            pickled = pickle.dumps(out_def)
+            head["pickled_out_def"] = len(pickled)
+    return json.dumps(head).encode() + b"\n" + pickled + body
+
+
+def _unpack(blob: bytes):
+    """(head, output structure or None, body) of a file written by ``_pack``."""
+    line, _, rest = blob.partition(b"\n")
+    head = json.loads(line)
+    if head.get("format") != FORMAT:
+        raise ValueError("another format")
+    n = head.get("pickled_out_def", 0)
+    if n:
+        out_def = pickle.loads(rest[:n])
+    elif "out_def" in head:
+        out_def = treedef_from_json(head["out_def"])
+    else:
+        out_def = None
+    return head, out_def, rest[n:]
+
+
 def keyed_meta(key: str):
     """(output structure or None, [(shape, dtype), ...]) of the program named ``key``, as
     recorded by a trace in this process or an earlier one (``store_meta``); None if
@@ -444,9 +557,13 @@ def keyed_meta(key: str):
         folder = directory()
         if folder is None:
             return None
+        blob = _read(folder / f"{key}.meta")
+        if blob is None:
+            return None
         try:
-            meta = pickle.loads((folder / f"{key}.meta").read_bytes())
-        except Exception:  # noqa: BLE001 - absent or damaged: trace
+            head, out_def, _ = _unpack(blob)
+            meta = (out_def, [(tuple(shape), dtype) for shape, dtype in head["avals"]])
+        except Exception:  # noqa: BLE001 - damaged or foreign: trace
             return None
         with _LOCK:
             _META[key] = meta
@@ -464,7 +581,7 @@ def store_meta(key: str, out_def, avals):
     folder = directory()
     if folder is not None and (meta[0] is not None or out_def is None):
         try:
-            _store(folder / f"{key}.meta", pickle.dumps(meta))
+            _store(folder / f"{key}.meta", _pack({"avals": meta[1]}, meta[0]))
         except (OSError, pickle.PicklingError, TypeError):
             pass
 
@@ -555,7 +672,7 @@ def _export_flat(flat_fn, specs, path: Path | None, out_def: Callable | None = N
     out_def = (out_def and out_def()) or box["out_def"]
     if path is not None and _portable(out_def):
         try:
-            _store(path, pickle.dumps((out_def, bytes(exported.serialize()))))
+            _store(path, _pack({}, out_def, bytes(exported.serialize())))
             STATS["stored"] += 1
         except (OSError, pickle.PicklingError, TypeError, ImportError):
             pass  # read-only cache: keep it in memory
@@ -760,12 +877,11 @@ _FAILED = object()  # export refused this function (e.g. a host callback): trace
 
 
 def _load(path: Path):
-    try:
-        blob = path.read_bytes()
-    except OSError:
+    blob = _read(path)
+    if blob is None:
         return None
     try:
-        head, body = pickle.loads(blob)
+        _, head, body = _unpack(blob)
         exported = jax.export.deserialize(bytearray(body))
     except Exception:  # a damaged or foreign file: trace again (and overwrite it)
         return None
@@ -803,7 +919,9 @@ def _compile(program, specs, options: dict, exe_path: Path):
         payload, in_tree, out_tree = serialize_executable.serialize(exe)
         examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
         devices = [d.id for d in exe.runtime_executable().local_devices()]
-        _store(exe_path, pickle.dumps((out_def, examples, payload, _uses_lapack(exe), devices)))
+        # JAX's serialized executable is a pickle itself: read back only when trusted
+        _store(exe_path, _pack({"lapack": _uses_lapack(exe), "devices": devices},
+                               out_def, pickle.dumps((examples, payload))))
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
     return exe, out_def
@@ -872,14 +990,15 @@ def _initialize_lapack():
 def _load_executable(path: Path):
     """(executable, out treedef) stored at ``path``, or None (absent, damaged, or one
     this jaxlib cannot load: the program is compiled again)."""
-    try:
-        blob = path.read_bytes()
-    except OSError:
+    blob = _read(path)
+    if blob is None:
         return None
     try:
         from jax.experimental import serialize_executable
 
-        out_def, examples, payload, lapack, device_ids = pickle.loads(blob)
+        head, out_def, body = _unpack(blob)
+        examples, payload = pickle.loads(body)
+        lapack, device_ids = head["lapack"], head["devices"]
         in_tree, out_tree = (jtu.tree_structure(e) for e in examples)
         if lapack:
             _initialize_lapack()
@@ -949,7 +1068,7 @@ def _export(fn, static, dyn_def, leaves, path: Path):
     if not _portable(box["out_def"]):
         return exported, box["out_def"]  # kept in memory only
     try:
-        _store(path, pickle.dumps((box["out_def"], bytes(exported.serialize()))))
+        _store(path, _pack({}, box["out_def"], bytes(exported.serialize())))
         STATS["stored"] += 1
     except (OSError, pickle.PicklingError, TypeError, ImportError):
         pass  # read-only cache: keep it in memory

@@ -12,6 +12,7 @@ import sys
 import textwrap
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -352,3 +353,46 @@ def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_ag
         traced = jax.vmap(f)(jnp.asarray(vals))
         traced = np.stack([flat(jax.tree_util.tree_map(lambda a, k=k: a[k], traced)) for k in range(len(vals))])
         np.testing.assert_allclose(traced, e, rtol=0, atol=1e-14)
+
+
+def test_the_cache_reads_back_only_what_this_user_wrote(tmp_path, monkeypatch):
+    """The cache directory is trusted like code (executables, and JAX's pickled ones): a
+    file another user owns, or any file in a directory others can write, is ignored with
+    a warning (the program is traced again); directories are created 0700; output
+    structures of builtin containers are stored as JSON, not pickle."""
+    import json as json_
+    import warnings
+
+    folder = tmp_path / "programs"
+    monkeypatch.setattr(_programs, "directory", lambda: folder)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    monkeypatch.setattr(_programs, "_WARNED", set())
+    fn = _user_function("def h(x):\n    return {'y': jnp.sin(x), 'z': (x, None)}\n", "h")
+    x = jnp.array([0.5, -1.0])
+    first = _programs.call("test-trust", fn, (x,))
+    assert (folder.stat().st_mode & 0o777) == 0o700
+    prog = next(folder.glob("*.prog"))
+    head = json_.loads(prog.read_bytes().partition(b"\n")[0])  # no pickle for {'y': *, 'z': (*, None)}
+    assert "pickled_out_def" not in head
+    assert _programs.treedef_from_json(head["out_def"]) == jax.tree_util.tree_structure(first)
+
+    def read_back():
+        monkeypatch.setattr(_programs, "_MEMORY", {})
+        loaded, stored = _programs.STATS["loaded"], _programs.STATS["stored"]
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            again = _programs.call("test-trust", fn, (x,))
+        np.testing.assert_array_equal(again["y"], first["y"])
+        return _programs.STATS["loaded"] - loaded, _programs.STATS["stored"] - stored, caught
+
+    assert read_back()[:2] == (1, 0)  # its own files: the executable loaded, nothing traced
+    folder.chmod(0o777)  # others could have planted anything
+    n_loaded, n_stored, caught = read_back()
+    assert n_loaded == 0 and n_stored >= 1 and any("trusted like code" in str(w.message) for w in caught)
+    folder.chmod(0o700)
+    monkeypatch.setattr(_programs, "_WARNED", set())
+    if os.getuid() == 0:  # a file of another user (only root can make one here)
+        for f in folder.iterdir():
+            os.chown(f, 12345, 12345)
+        n_loaded, n_stored, caught = read_back()
+        assert n_loaded == 0 and n_stored >= 1 and any("another user" in str(w.message) for w in caught)
