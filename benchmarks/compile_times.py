@@ -185,6 +185,35 @@ from nhjax.mechanics import curvature_integral
 from nhjax.mechanics.reduction import EllipseLoop
 system = S.PlanarChain(momentum="zero").kinematic(); c = jnp.array([1.0, 0.8])
 call = lambda: curvature_integral(system, EllipseLoop(c, 0.5, 0.3), c)""",
+    # optimal-control tasks (the issue-39 tasks; their after-compile figures and the peers'
+    # are in somersault_peer.py and steering_peer.py)
+    "OC: chart somersault, solve_direct then solve_pontryagin": """
+import jax.numpy as jnp, controls
+from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+cat, th0, T = S.FallingCatKinematic(), 0.6, 2.0
+def call():
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    param = controls.Chebyshev(10, T, 2)
+    d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])), progress=False)
+    p = controls.solve_pontryagin(ocp, *fixed_theta_costates(cat, th0, T), progress=False)
+    return np.array([d.cost, p.cost])""",
+    "OC: sphere steering, solve_direct_newton, Chebyshev(6)": """
+import controls
+from controls.tasks import linear_guess, sphere_steering
+def call():
+    ocp = sphere_steering(S.ShellWithTop(), (-0.3, 0.4), 3.0)
+    param = controls.Chebyshev(6, 3.0, 3)
+    return np.array(controls.solve_direct_newton(ocp, param, linear_guess(ocp, param), progress=False).cost)""",
+    "OC: 3-link chain reorientation by 0.2 rad, Chebyshev(12)": """
+import jax.numpy as jnp, controls
+from controls.tasks import chain_loop_guess, chain_radius_for_turn, chain_reorientation
+chain, phi0, T = S.PlanarChain(group="SO2"), jnp.array([0.5, 0.5]), 3.0
+def call():
+    radius, orientation = chain_radius_for_turn(chain, 0.2, phi0)
+    ocp = chain_reorientation(chain, 0.2, T, phi0)
+    param = controls.Chebyshev(12, T, 2)
+    guess = chain_loop_guess(chain, param, phi0, T, radius, orientation=orientation)
+    return np.array(controls.solve_direct_newton(ocp, param, guess, progress=False).cost)""",
 }
 
 CHILD = """

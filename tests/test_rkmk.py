@@ -176,6 +176,7 @@ def test_a_solve_traces_the_step_once(monkeypatch):
     so its body is traced once, and the solve is the same as with the step inlined."""
     import jax
 
+    from nhjax import _programs
     from nhjax.integrate import rkmk
     from nhjax.scenes import BallInCone
 
@@ -188,6 +189,9 @@ def test_a_solve_traces_the_step_once(monkeypatch):
     ball = BallInCone()  # projected steps and a guard event: every kind of step trace
     x0 = ball.initial_state(rho=3.0, rho_dot=0.5, alpha_dot=0.3, spin=1.0)
     monkeypatch.setattr(rkmk._AbstractRKMK, "_step", counted)
+    # the solve traced here, not a stored program from another test or an earlier run
+    monkeypatch.setenv("NHJAX_PROGRAM_CACHE", "0")
+    monkeypatch.setattr(_programs, "_MEMORY", {})
     nested = jax.jit(lambda x: nhjax.simulate(ball, x, 4.0, saveat=2, diagnostics=False).xs[-1])(x0)
     assert len(traces) == 1
     monkeypatch.setattr(rkmk, "_nested_step", lambda solver, *args: solver._step(*args))
