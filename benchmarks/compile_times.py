@@ -197,6 +197,16 @@ def call():
     d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])), progress=False)
     p = controls.solve_pontryagin(ocp, *fixed_theta_costates(cat, th0, T), progress=False)
     return np.array([d.cost, p.cost])""",
+    "OC: 64 chart somersaults, solve_pontryagin_batch": """
+import controls
+from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+cat, T = S.FallingCatKinematic(), 2.0
+bends = np.linspace(0.5, 0.8, 64)
+def call():
+    hol = -2 * np.pi * cat.lam * np.cos(bends) / (np.sin(bends) ** 2 + cat.lam * np.cos(bends) ** 2)
+    ocps = [velocity_somersault_chart(cat, th, h - 0.2, T) for th, h in zip(bends, hol)]
+    p0, nu = zip(*(fixed_theta_costates(cat, th, T) for th in bends))
+    return controls.solve_pontryagin_batch(ocps, np.stack(p0), np.stack(nu), progress=False).cost""",
     "OC: sphere steering, solve_direct_newton, Chebyshev(6)": """
 import controls
 from controls.tasks import linear_guess, sphere_steering

@@ -4,8 +4,10 @@ simulations, single or multiple shooting, augmented Lagrangian) and indirect
 default of solve_direct: damped-BFGS Hessians, exact constraint Jacobians,
 control bounds in its QP), a feasible-path Newton direct solver for small
 strongly-curved problems, with a residual check of the
-optimality conditions that applies to any solution."""
+optimality conditions that applies to any solution, and grids of problems of one
+structure solved in one program (``solve_pontryagin_batch``)."""
 
+from .batch import BatchResult, GridError, solve_pontryagin_batch
 from .direct import DirectResult, solve_direct
 from .newton import solve_direct_newton
 from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
@@ -22,10 +24,12 @@ from .pontryagin import (
 from .problem import OCP, ProblemError, rollout
 
 __all__ = [
+    "BatchResult",
     "Chebyshev",
     "CubicSpline",
     "DirectResult",
     "Fourier",
+    "GridError",
     "HamiltonianSystem",
     "IndirectResult",
     "OCP",
@@ -42,4 +46,5 @@ __all__ = [
     "solve_direct_newton",
     "solve_direct_sqp",
     "solve_pontryagin",
+    "solve_pontryagin_batch",
 ]

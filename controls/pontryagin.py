@@ -169,6 +169,9 @@ class _Shooting(eqx.Module):
     rtol: jax.Array
     atol: jax.Array
     segments: int = eqx.field(static=True)
+    #: Budget of ODE steps of each solve of single shooting (None: simulate's default):
+    #: a trial point whose extremal needs more is a failed (non-finite) trial.
+    max_ode_steps: int | None = eqx.field(static=True, default=None)
 
     @property
     def residual_size(self):
@@ -198,13 +201,14 @@ class _Shooting(eqx.Module):
 _EXTREMAL_POINTS = 401
 
 
-def _extremal(ham, p0, rtol, atol, adjoint=None):
+def _extremal(ham, p0, rtol, atol, adjoint=None, max_steps=None):
     """The extremal from (x0, p0) with its running cost integrated alongside: one solve
     of (x, p, J) (``_CostOfExtremal``), saved at ``_EXTREMAL_POINTS`` times."""
     ocp = ham.ocp
     y0 = jnp.concatenate([ocp.x0, p0, jnp.zeros(1)])
     return nhjax.simulate(_CostOfExtremal(ham), y0, ocp.T, rtol=rtol, atol=atol, saveat=_EXTREMAL_POINTS,
-                          track_work=False, diagnostics=False, **({} if adjoint is None else {"adjoint": adjoint}))
+                          track_work=False, diagnostics=False, max_steps=max_steps,
+                          **({} if adjoint is None else {"adjoint": adjoint}))
 
 
 class _ExtremalSensitivity(AbstractSystem):
@@ -258,7 +262,7 @@ def _residual_and_extremal(sh, z, saveat=_EXTREMAL_POINTS):
     y0 = jnp.concatenate([ocp.x0, z[:n], jnp.zeros(1), phi0.reshape(-1)])
     controller = diffrax.PIDController(rtol=sh.rtol, atol=sh.atol, norm=_LeadingNorm(2 * n + 1))
     tr = nhjax.simulate(_ExtremalSensitivity(sh.ham), y0, ocp.T, saveat=saveat, track_work=False,
-                        diagnostics=False, stepsize_controller=controller)
+                        diagnostics=False, stepsize_controller=controller, max_steps=sh.max_ode_steps)
     yT = tr.xs[-1]
     r, (dr_dxp, dr_dnu) = (_terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:]),
                            jax.jacfwd(lambda xp, nu: _terminal_residual(ocp, xp[:n], xp[n:], nu),
@@ -426,7 +430,7 @@ def _indirect_body(sh, z0, tol, max_steps, damped: bool, one_solve: bool):
     one = one_solve and single
     z, r, steps, tr = _shooting_root(sh, z0, tol, max_steps, damped, extremal=one)
     if not one:
-        tr = _extremal(sh.ham, z[:n], sh.rtol, sh.atol)
+        tr = _extremal(sh.ham, z[:n], sh.rtol, sh.atol, max_steps=sh.max_ode_steps if single else None)
         if single:
             yT = tr.xs[-1]
             r = _terminal_residual(ocp, yT[:n], yT[n:2 * n], z[n:n + m])

@@ -53,19 +53,24 @@ TRACES = collections.Counter()
 
 
 @contextlib.contextmanager
-def nan_errors():
+def nan_errors(mode: str = "nan"):
     """equinox's runtime errors (eqx.error_if in diffrax, optimistix, lineax and
     simulate's checks) traced as NaN outputs instead of host callbacks, while the
     programs of ``compiled`` are traced. A program with a host callback is never kept
     in JAX's persistent cache; the solvers here read NaN/inf as a failed trial (the
-    line searches back off) and report it."""
+    line searches back off) and report it.
+
+    ``mode="off"``: no checks at all, for batched programs: under vmap an equinox
+    check fails every member when one fails (its predicate is reduced over the batch),
+    whereas a solve that stops early leaves its unreached saves at inf, which fails
+    that member's trial only."""
     from equinox import _errors
 
     if not hasattr(_errors, "EQX_ON_ERROR"):
         yield
         return
     old = _errors.EQX_ON_ERROR
-    _errors.EQX_ON_ERROR = "nan"
+    _errors.EQX_ON_ERROR = mode
     try:
         yield
     finally:
@@ -92,7 +97,7 @@ def host_array(x):
     return jnp.asarray(np.asarray(x), float)
 
 
-def compiled(fn=None, *, quick: bool = False):
+def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
     """``eqx.filter_jit(fn)``, traced under ``nan_errors`` and counted in ``TRACES``.
 
     Called on concrete values, the program comes from nhjax's program cache
@@ -111,9 +116,12 @@ def compiled(fn=None, *, quick: bool = False):
     bits that differ from a default compile's), for programs that run a few
     times per call and whose compile the first answer waits for: the checks of a
     solution (re-simulation, costate sweep) and one-off computations (a fit's basis,
-    the control cost's Hessian)."""
+    the control cost's Hessian).
+
+    ``errors``: equinox's error mode while the program is traced (``nan_errors``):
+    "nan", or "off" for programs vmapped over members."""
     if fn is None:
-        return functools.partial(compiled, quick=quick)
+        return functools.partial(compiled, quick=quick, errors=errors)
     options = _programs.QUICK_OPTIONS if quick else _programs.SOLVE_OPTIONS
 
     @functools.wraps(fn)
@@ -131,17 +139,17 @@ def compiled(fn=None, *, quick: bool = False):
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        with nan_errors():
+        with nan_errors(errors):
             if kwargs:
                 return jitted(*args, **kwargs)
-            return _programs.call(name, counted, args, error_mode="nan", fallback=jitted,
+            return _programs.call(name, counted, args, error_mode=errors, fallback=jitted,
                                   compiler_options=options)
 
     def prepare(*args):
         """Trace this program for ``args``'s structure now and compile it in the
         background (``nhjax._programs.prepare``), for a solver that calls it later."""
-        with nan_errors():
-            return _programs.prepare(name, counted, args, error_mode="nan", compiler_options=options)
+        with nan_errors(errors):
+            return _programs.prepare(name, counted, args, error_mode=errors, compiler_options=options)
 
     call.jitted = jitted
     call.prepare = prepare
@@ -213,6 +221,7 @@ class Progress:
 
 
 _N_CONSTRAINTS: dict = {}
+_SHAPES_CHECKED: set = set()
 
 
 def check_tolerances(owner, **tols):
@@ -387,6 +396,21 @@ class OCP(eqx.Module):
                     f"{float(g):.3g} <= 0). " + self.system.guard_hints.get(name, ""))
 
     def _check_shapes(self):
+        # a structural question: answered once per structure (three traces of the model
+        # otherwise, ~25 ms per problem: a grid of problems builds hundreds)
+        parts = (self.system, self.x0, self.running_cost, self.terminal_cost, self.terminal_constraints)
+        key = (jtu.tree_structure(parts), tuple((np.shape(a), a.dtype) if eqx.is_array(a) else a
+                                                for a in jtu.tree_leaves(parts)))
+        try:
+            if key in _SHAPES_CHECKED:
+                return
+        except TypeError:  # unhashable leaves or static fields: check every time
+            key = None
+        self._check_shapes_traced()
+        if key is not None:
+            _SHAPES_CHECKED.add(key)
+
+    def _check_shapes_traced(self):
         u = jax.ShapeDtypeStruct((self.system.control_dim,), jnp.float64)  # abstract: no eager program
         names = self.system.state_names
         if names and getattr(self.x0, "shape", None) != (len(names),):

@@ -59,7 +59,9 @@ __all__ = [
     "rhs_numpy",
     "cost_rate_numpy",
     "build",
+    "build_grid",
     "solve",
+    "solve_grid_member",
     "evaluate",
 ]
 
@@ -189,6 +191,55 @@ def build(N=40, controls="pc", integrator="rk4", substeps=4, problem=PROBLEM, ca
                 controls=controls, integrator=integrator, substeps=substeps if integrator == "rk4" else None,
                 n_variables=int(w.shape[0]), n_constraints=ng, build_seconds=build_seconds,
                 hessian=hessian)
+
+
+def build_grid(N=40, controls="pl", substeps=4, T=2.0, windings=1, cat=CAT, ipopt_tol=1e-10):
+    """The chart somersault's multiple-shooting NLP (RK4 substeps, exact Hessian) with
+    (theta0, turn) as NLP parameters: one build serves a grid of problems (as a
+    researcher would write it for a sweep), each solved by ``solve_grid_member``."""
+    if controls not in ("pc", "pl"):
+        raise ValueError("controls must be 'pc' or 'pl'")
+    start = time.perf_counter()
+    F = _interval_map(N, T, controls, "rk4", substeps, cat, None)
+    nU = N if controls == "pc" else N + 1
+    X, U, P = ca.SX.sym("X", 3, N + 1), ca.SX.sym("U", 2, nU), ca.SX.sym("P", 2)
+    J = 0
+    g = [X[:, 0] - ca.vertcat(P[0], 0, 0)]
+    for k in range(N):
+        xf, qf = F(X[:, k], U[:, k], U[:, k] if controls == "pc" else U[:, k + 1])
+        J = J + qf
+        g.append(xf - X[:, k + 1])
+    g.append(X[:, N] - ca.vertcat(P[0], 2 * math.pi * windings, P[1]))
+    opts = {"ipopt.tol": ipopt_tol, "ipopt.print_level": 0, "print_time": False, "ipopt.sb": "yes",
+            "ipopt.max_iter": 500, "expand": True}
+    solver = ca.nlpsol("S", "ipopt", {"x": ca.vertcat(ca.vec(X), ca.vec(U)), "f": J, "g": ca.vertcat(*g), "p": P},
+                       opts)
+    return dict(solver=solver, N=N, nU=nU, T=T, controls=controls, windings=windings, cat=cat,
+                ng=3 * (N + 2), build_seconds=time.perf_counter() - start)
+
+
+def loop_start(nlp, theta0):
+    """The fixed-theta loop at ``theta0`` as a start of ``build_grid``'s NLP."""
+    N, nU, T, cat = nlp["N"], nlp["nU"], nlp["T"], nlp["cat"]
+    c = 2 * math.pi * nlp["windings"] / T
+    fth = cat["lam"] * math.cos(theta0) / (math.sin(theta0) ** 2 + cat["lam"] * math.cos(theta0) ** 2)
+    ts = np.linspace(0.0, T, N + 1)
+    X0 = np.stack([np.full(N + 1, theta0), c * ts, -fth * c * ts])
+    U0 = np.stack([np.zeros(nU), np.full(nU, c)])
+    return np.concatenate([X0.ravel(order="F"), U0.ravel(order="F")])
+
+
+def solve_grid_member(nlp, theta0, turn, w0):
+    """One member of ``build_grid``'s family from the start ``w0``: cost, success,
+    iterations, the solution vector (a neighbour's warm start) and the call's time."""
+    S = nlp["solver"]
+    t = time.perf_counter()
+    sol = S(x0=w0, p=[theta0, turn], lbg=np.zeros(nlp["ng"]), ubg=np.zeros(nlp["ng"]))
+    seconds = time.perf_counter() - t
+    st = S.stats()
+    return dict(cost=float(sol["f"]), success=bool(st["success"]), iterations=int(st["iter_count"]),
+                w=np.asarray(sol["x"]).ravel(), violation=float(np.abs(np.asarray(sol["g"])).max()),
+                seconds=seconds)
 
 
 def solve(nlp):

@@ -1,0 +1,316 @@
+"""Grids of optimal-control problems in one call: Pontryagin shooting on many problems
+of one structure at once.
+
+``solve_pontryagin_batch(ocps, p0_guess, nu_guess)`` takes a list of ``OCP``s that
+differ in numbers only (x0, targets, the horizon T, weights, the system's parameters)
+and solves them all in one compiled program: the members' numbers are stacked on a
+leading axis and ``solve_pontryagin``'s whole root find (``_indirect_body``: Newton or
+Levenberg–Marquardt on the shooting residual, the extremal and its cost) runs over
+them, ``lanes`` members side by side (vmapped) and the groups one after another.
+Within a group the iteration runs until every member has stopped; a member that
+stopped keeps its values (JAX's batched while loop selects them), so it is the same
+solve as alone, to rounding. The program is one per structure and batch size and is
+kept in nhjax's program cache like ``solve_pontryagin``'s.
+
+Each member gets a status, ``converged`` / ``max_iterations`` / ``stalled`` /
+``non_finite`` / ``non_finite_input``, with a reason; a member that fails does not
+spoil the others (the ODE solves and the linear algebra are per member; a member
+whose numbers or guesses are NaN/inf is not run at all and is flagged instead).
+
+Members that differ in structure (other state or constraint sizes, another running
+cost or system type, another integer setting) cannot share a program: ``GridError``
+names the first member and the field that differ, before any numerics.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import jax.tree_util as jtu
+import numpy as np
+
+from .pontryagin import HamiltonianSystem, _check_pontryagin, _indirect_body, _root_options, _Shooting
+from .problem import OCP, ProblemError, Progress, check_tolerances, compiled, host_array
+
+__all__ = ["BatchResult", "GridError", "solve_pontryagin_batch", "stack_members"]
+
+#: The statuses a member can end with.
+STATUSES = ("converged", "max_iterations", "stalled", "non_finite", "non_finite_input")
+
+
+class GridError(ProblemError):
+    """Members of a batch that differ in structure (not only in numbers)."""
+
+
+def _is_number(x) -> bool:
+    """A leaf that may differ between members: an array, or a Python/NumPy float (a
+    scene's parameter). Integers and booleans are structure (sizes, switches)."""
+    if isinstance(x, (bool, np.bool_)):
+        return False
+    if eqx.is_array(x):
+        return True
+    return isinstance(x, (float, np.floating))
+
+
+def _path_name(path) -> str:
+    return "".join(str(k) for k in path) or "(the member itself)"
+
+
+def stack_members(members, *, owner: str = "stack_members", what: str = "member"):
+    """One pytree whose number leaves (arrays and floats, ``_is_number``) are the
+    members' leaves stacked on a new leading axis; everything else must be equal
+    across members. Raises ``GridError`` naming the first member and field that
+    differ (types, tree structure, an array's shape or dtype, a non-number leaf)."""
+    members = list(members)
+    if not members:
+        raise ProblemError(f"{owner}: no {what}s: pass a non-empty list")
+    first = members[0]
+    flat0, tree0 = jtu.tree_flatten(first)
+    kinds0 = [(np.shape(v), True) if _is_number(v) else (None, False) for v in flat0]
+    flats = [flat0]
+    for member in members[1:]:
+        flat, tree = jtu.tree_flatten(member)
+        flats.append(flat)
+        if (type(member) is not type(first) or tree != tree0 or len(flat) != len(flat0)
+                or any(((np.shape(v), True) if _is_number(v) else (None, False)) != k for v, k in zip(flat, kinds0))
+                or any(not k[1] and not _same(v, v0) for v, v0, k in zip(flat, flat0, kinds0))):
+            break
+    else:
+        return jtu.tree_unflatten(tree0, [np.stack([np.asarray(f[k]) for f in flats]) if kinds0[k][1] else flat0[k]
+                                          for k in range(len(flat0))])
+    # a member differs: find and name the first difference
+    leaves0, tree0 = jtu.tree_flatten_with_path(first)
+    for i, member in enumerate(members[1:], start=1):
+        if type(member) is not type(first):
+            raise GridError(f"{owner}: {what} {i} is a {type(member).__name__}, {what} 0 a "
+                            f"{type(first).__name__}: a batch holds problems of one structure")
+        leaves, tree = jtu.tree_flatten_with_path(member)
+        paths0, paths = [p for p, _ in leaves0], [p for p, _ in leaves]
+        if paths != paths0:
+            diff = next((a for a, b in zip(paths, paths0) if a != b), None)
+            where = _path_name(diff) if diff is not None else f"{len(paths)} leaves against {len(paths0)}"
+            raise GridError(f"{owner}: {what} {i} differs from {what} 0 in structure at {where}: a batch holds "
+                            "problems that differ in numbers only (x0, targets, T, weights, parameters)")
+        for (path, a), (_, b) in zip(leaves, leaves0):
+            name = _path_name(path)
+            if _is_number(a) != _is_number(b):
+                raise GridError(f"{owner}: {what} {i}'s {name} is a {type(a).__name__}, {what} 0's a "
+                                f"{type(b).__name__}")
+            if _is_number(a):
+                sa, sb = np.shape(a), np.shape(b)
+                if sa != sb:
+                    raise GridError(f"{owner}: {what} {i}'s {name} has shape {sa}, {what} 0's {sb}: a batch "
+                                    "holds problems of one structure (state, control and constraint sizes)")
+            elif not _same(a, b):
+                raise GridError(f"{owner}: {what} {i}'s {name} is {a!r}, {what} 0's {b!r}: this setting is "
+                                "part of the problem's structure (one compiled program per value)")
+        if tree != tree0:  # static fields of modules (after the leaves agree)
+            raise GridError(f"{owner}: {what} {i} differs from {what} 0 in a static setting of its modules "
+                            f"({_first_static_difference(member, first)}): one compiled program per value")
+    raise GridError(f"{owner}: the {what}s differ in structure")  # (not reached: a difference is named above)
+
+
+def _same(a, b) -> bool:
+    try:
+        return bool(a == b)
+    except Exception:  # noqa: BLE001 (an object without a truthy ==: compare identity)
+        return a is b
+
+
+def _first_static_difference(a, b) -> str:
+    if dataclasses.is_dataclass(a) and type(a) is type(b):
+        for f in dataclasses.fields(a):
+            va, vb = getattr(a, f.name, None), getattr(b, f.name, None)
+            if jtu.tree_structure(va) != jtu.tree_structure(vb):
+                inner = _first_static_difference(va, vb)
+                return f"{type(a).__name__}.{f.name}" + (f" > {inner}" if inner else "")
+    return ""
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchResult:
+    """Outcome of ``solve_pontryagin_batch``, member by member (axis 0 is the member).
+
+    p0 : (B, n) initial costates [cost units per state unit]; nu : (B, m) multipliers.
+    cost : (B,) Phi(x(T)) + int_0^T L dt along each member's extremal.
+    violation : (B,) max |psi(x(T))| at each extremal's end.
+    residual : (B,) max |shooting residual| at each member's last point.
+    iterations : (B,) Newton / Levenberg–Marquardt steps each member took.
+    status : (B,) one of ``STATUSES``; ``converged`` (B,) bool is status == "converged".
+    reasons : one sentence per member ("" when converged).
+    xs : (B, 401, 2n) each extremal's (x, p) at ``ts``; controls : (B, 401, k) u* there.
+    ts : (B, 401) the saved times (each member's own [0, T]).
+    seconds : wall time of the call (the compile included on a first call) [s].
+    NaN rows for members that were not run (``non_finite_input``).
+    """
+
+    p0: np.ndarray
+    nu: np.ndarray
+    cost: np.ndarray
+    violation: np.ndarray
+    residual: np.ndarray
+    iterations: np.ndarray
+    status: np.ndarray
+    reasons: list
+    xs: np.ndarray
+    ts: np.ndarray
+    controls: np.ndarray
+    seconds: float
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status == "converged"
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def counts(self) -> dict:
+        """How many members ended with each status."""
+        return {s: int(np.sum(self.status == s)) for s in STATUSES if np.any(self.status == s)}
+
+
+@compiled(errors="off")  # (equinox's checks would fail every member when one fails)
+def _indirect_batch(sh, ocps, z0, tol, max_steps, damped: bool, lanes: int):
+    """``_indirect_body`` of the shooting ``sh`` with its problem replaced by each
+    member of ``ocps`` (every array leaf with the member on axis 0; ``z0`` likewise):
+    one program for the whole grid, ``lanes`` members at a time in lockstep (vmapped),
+    the groups one after another (``jax.lax.map``)."""
+    dynamic, static = eqx.partition(ocps, eqx.is_array)
+
+    def one(args):
+        d, z = args
+        member = eqx.tree_at(lambda s: s.ham.ocp, sh, eqx.combine(d, static))
+        return _indirect_body(member, z, tol, max_steps, damped, one_solve=False)
+
+    return jax.lax.map(one, (dynamic, z0), batch_size=lanes)
+
+
+def _guesses(name, guess, B, size, owner):
+    if guess is None:
+        return np.zeros((B, size))
+    g = np.asarray(guess, float)
+    if g.shape == (size,):
+        return np.broadcast_to(g, (B, size)).copy()
+    if g.shape != (B, size):
+        raise ProblemError(f"{owner}: {name} must have shape ({size},) (the same for every member) or "
+                           f"({B}, {size}) (one row per member), got {g.shape}")
+    return g
+
+
+def solve_pontryagin_batch(
+    ocps,
+    p0_guess=None,
+    nu_guess=None,
+    *,
+    solver: str = "newton",
+    u_star: str = "quadratic",
+    rtol: float = 1e-11,
+    atol: float = 1e-11,
+    tol: float = 1e-10,
+    max_steps: int = 25,
+    max_ode_steps: int = 2048,
+    lanes: int = 8,
+    progress: bool = True,
+) -> BatchResult:
+    """Single-shooting Pontryagin solves of many problems of one structure in one program.
+
+    ocps : a list of B ``OCP``s that differ in numbers only (``GridError`` otherwise).
+    p0_guess : (n,) the same costate guess for every member, or (B, n) one per member
+        (default zeros); nu_guess : (m,) or (B, m) likewise for the multipliers.
+    solver, u_star, rtol, atol, tol : as ``solve_pontryagin`` (shared).
+    max_steps, max_ode_steps : budgets of root-finding steps and of ODE steps of each
+        extremal solve, smaller than ``solve_pontryagin``'s (100 and 100 000): the
+        members run in lockstep (the batched loops run until every member is done),
+        so a member that wanders (Newton far from any root, an extremal that turns
+        stiff) would hold up the whole grid for as long as it takes. Newton from a
+        good start (a neighbour, a continuation stage) converges in well under 25
+        steps; a member over either budget stops with its status saying so.
+    lanes : members solved side by side (vmapped, in lockstep: a group takes its
+        slowest member's iterations and ODE steps); the groups run one after
+        another in the same program. A few lanes let XLA vectorize across members
+        without making many wait for the slowest.
+    progress : a progress line when the batch ends, with the status counts.
+
+    Each member's answer is that of ``solve_pontryagin`` on it alone with the same
+    options (the same iteration, vmapped). Returns a ``BatchResult``; nothing is raised
+    for a member that fails: its status and reason say why.
+    """
+    owner = "solve_pontryagin_batch"
+    t_start = time.perf_counter()
+    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
+    if not ocps:
+        raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
+    for i, o in enumerate(ocps):
+        if not isinstance(o, OCP):
+            raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
+    for o in ocps:
+        _check_pontryagin(o, owner, solver, u_star)
+    check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"),
+                     max_ode_steps=(max_ode_steps, "int"), lanes=(lanes, "int"))
+    B = len(ocps)
+    rt, at = host_array(rtol), host_array(atol)
+    stacked = stack_members(ocps, owner=owner, what="problem")  # structure first, before any numerics
+    sh = _Shooting(HamiltonianSystem(ocps[0], u_star), rt, at, 1, int(max_ode_steps))
+    n, m = ocps[0].x0.shape[0], ocps[0].n_constraints
+    P0, NU = _guesses("p0_guess", p0_guess, B, n, owner), _guesses("nu_guess", nu_guess, B, m, owner)
+    z0 = np.concatenate([P0, NU], axis=1)
+    # members whose numbers or guesses are NaN/inf are flagged, not run: their rows are
+    # filled with a finite member's (the program needs some numbers there)
+    numbers = [leaf for leaf in jtu.tree_leaves(stacked) if _is_number(leaf) and np.ndim(leaf) >= 1]
+    finite = np.all(np.isfinite(z0), axis=1)
+    for leaf in numbers:
+        finite &= np.all(np.isfinite(np.asarray(leaf).reshape(B, -1)), axis=1)
+    if not finite.any():
+        raise ProblemError(f"{owner}: every member has NaN/inf numbers or guesses: nothing to solve")
+    if not finite.all():
+        donor = int(np.argmax(finite))
+        stacked = jtu.tree_map(lambda a: np.where(finite.reshape((B,) + (1,) * (np.ndim(a) - 1)), a, a[donor])
+                               if _is_number(a) and np.ndim(a) >= 1 else a, stacked)
+        z0 = np.where(finite[:, None], z0, z0[donor])
+    stacked = jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, stacked)
+    bar = Progress(progress, 1, f"Pontryagin batch of {B} ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
+    z, res, steps, traj, us, cost, viol = _indirect_batch(sh, stacked, z0, *_root_options(tol, max_steps, solver),
+                                                          min(int(lanes), B))
+    z, res, cost, viol, xs, ts, us = (np.array(a, float) for a in (z, res, cost, viol, traj.xs, traj.ts, us))
+    steps = np.asarray(steps)
+    status, reasons = _statuses(z, res, steps, finite, tol, max_steps, solver)
+    bad = ~finite
+    for a in (z, res, cost, viol, xs, us):
+        a[bad] = np.nan
+    result = BatchResult(p0=z[:, :n], nu=z[:, n:n + m], cost=cost, violation=viol, residual=res, iterations=steps,
+                         status=status, reasons=reasons, xs=xs, ts=ts, controls=us,
+                         seconds=time.perf_counter() - t_start)
+    bar.update(**{k.replace("_", " "): v for k, v in result.counts().items()})
+    bar.finish(bool(result.converged.all()))
+    return result
+
+
+def _statuses(z, res, steps, finite, tol, max_steps, solver):
+    """Each member's status and reason from its outputs (``solve_pontryagin``'s test of
+    convergence: a finite residual below 1e3 tol)."""
+    B = len(res)
+    status, reasons = np.empty(B, dtype=object), []
+    for i in range(B):
+        if not finite[i]:
+            s, why = "non_finite_input", "its numbers or guesses hold NaN/inf; not solved"
+        elif not (np.all(np.isfinite(z[i])) and np.isfinite(res[i])):
+            s, why = "non_finite", ("the iteration left the region where the extremal can be integrated or "
+                                    "diverged to NaN/inf" + ("; try solver='lm' or a closer guess"
+                                                             if solver == "newton" else "; try a closer guess"))
+        elif res[i] < 1e3 * tol:
+            s, why = "converged", ""
+        elif steps[i] >= max_steps:
+            s, why = "max_iterations", f"{max_steps} steps taken, shooting residual still {res[i]:.2e}"
+        else:
+            s, why = "stalled", (f"stopped at shooting residual {res[i]:.2e} > 1e3 tol: a step led to an extremal "
+                                 "that cannot be integrated (within max_ode_steps), or the steps stopped "
+                                 "shrinking (no root near this start, a singular Jacobian); try "
+                                 + ("solver='lm', " if solver == "newton" else "") + "a closer guess or "
+                                 "continuation from an easier member")
+        status[i] = s
+        reasons.append(why)
+    return status.astype(str), reasons

@@ -1,0 +1,182 @@
+"""A map of optimal somersaults: the chart somersault's least vibrational energy and
+peak input over a grid of turn angles x initial bends, 256 problems in one call.
+
+Problem (``controls.tasks.velocity_somersault_chart``, seed 000 (7.1), (4.8)): the
+velocity-controlled cat in Iwai's chart, x = (theta, chi, psi), starts bent at
+theta0 and returns to it after chi winds once (T = 2 s) while psi turns by ``turn``;
+least int I1 [(1 + B s^2) theta'^2 + lam s^2/D chi'^2] dt. Every member is solved by
+Pontryagin shooting, all at once (``controls.solve_pontryagin_batch``: one compiled
+program for the grid), by continuation in the turn: each member starts from the
+fixed-theta loop's exact extremal (``fixed_theta_costates``), whose turn is the
+loop's holonomy -2 pi f(theta0), and walks to its own turn in ``--stages`` batched
+solves, each warm-started from the last, at rtol = atol = 1e-8 and a shooting
+tolerance of 1e-6, then polishes the final turn at ``solve_pontryagin``'s defaults
+(rtol = atol = 1e-11, tol = 1e-10).
+
+Peer, in the same run (``--no-ipopt`` skips it; needs casadi, the ``peers`` extra,
+and a source checkout): CasADi + IPOPT on the same problems one by one
+(benchmarks/peers/casadi_somersault.py ``build_grid``: multiple shooting, N = 40
+piecewise-linear intervals, RK4 x 4, exact Hessian, built once with (theta0, turn)
+as parameters), each member warm-started from its neighbour's solution along a
+snake through the grid (the first from the fixed-theta loop).
+
+Writes ``DIR/somersault_map.json`` (``turns``, ``bends``, ``costs`` and
+``peak_inputs`` [bend][turn], ``status`` per member, ``batch_seconds_first``: the
+continuation with its compile, ``batch_seconds``: the same again after compile,
+``ipopt_seconds``: IPOPT's solves of the 256, ``ipopt_build_seconds``,
+``max_rel_diff_vs_ipopt``, the throughput ratio and the load average) and
+``DIR/somersault_map.png`` (heat maps of cost and peak input with the fixed-theta
+loop's turn marked: the members on that curve are solved by the loop itself).
+
+Usage: nhjax run somersault_map [--out DIR] [--n 16] [--stages 4] [--no-ipopt]
+"""
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import equinox as eqx
+import numpy as np
+
+import controls
+from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+from nhjax.scenes import FallingCatKinematic
+
+T = 2.0
+BENDS = (0.4, 1.0)  # theta0 [rad]
+TURNS = (-4.0, -2.0)  # turn of psi [rad]
+
+
+def holonomy(cat, theta0):
+    """The fixed-theta loop's turn -2 pi f(theta0) [rad] (chi winds once)."""
+    th = np.asarray(theta0, float)
+    c, s = np.cos(th), np.sin(th)
+    return -2 * np.pi * cat.lam * c / (s * s + cat.lam * c * c)
+
+
+def solve_map(cat, bends, turns, stages, progress=False):
+    """Every (bend, turn) member by batched continuation from the fixed-theta loop:
+    the last stage's ``BatchResult`` and the seconds of the whole walk."""
+    TH, TU = (a.ravel() for a in np.meshgrid(bends, turns, indexing="ij"))
+    start = time.perf_counter()
+    hol = holonomy(cat, TH)
+    p0, nu = zip(*(fixed_theta_costates(cat, th, T) for th in TH))
+    z = np.concatenate([np.stack(p0), np.stack(nu)], axis=1)
+    ocps = [velocity_somersault_chart(cat, th, tu, T) for th, tu in zip(TH, TU)]
+    for k in range(1, stages + 2):
+        # the stages walk at loose tolerances (the way there needs no accuracy: fewer ODE
+        # steps); the last solve polishes the final turn at solve_pontryagin's defaults
+        tols = dict(rtol=1e-8, atol=1e-8, tol=1e-6) if k <= stages else {}
+        turn = hol + (TU - hol) * min(k, stages) / stages
+        # the members differ from the final problems in the target turn only
+        stage = [eqx.tree_at(lambda o: o.terminal_constraints.target, o, o.terminal_constraints.target.at[2].set(t))
+                 for o, t in zip(ocps, turn)] if k < stages else ocps
+        r = controls.solve_pontryagin_batch(stage, z[:, :3], z[:, 3:], progress=progress, **tols)
+        # a member that failed at a stage keeps its last good start (its status says so at the end)
+        z = np.where(r.converged[:, None], np.concatenate([r.p0, r.nu], axis=1), z)
+    return r, time.perf_counter() - start
+
+
+def ipopt_map(bends, turns):
+    """IPOPT on each member one by one along a snake through the grid, each from its
+    neighbour's solution: costs [bend][turn], success, the solves' seconds, the build's."""
+    here = Path(__file__).resolve().parents[1] / "benchmarks" / "peers"
+    if not here.is_dir():
+        return None, "the CasADi peer lives in a source checkout (benchmarks/peers)"
+    sys.path.insert(0, str(here))
+    try:
+        import casadi_somersault as peer
+    except ImportError as e:
+        return None, f"casadi is not installed ({e}); pip install -e '.[peers]'"
+    nlp = peer.build_grid(N=40, controls="pl", substeps=4, T=T)
+    costs = np.full((len(bends), len(turns)), np.nan)
+    success = np.zeros_like(costs, dtype=bool)
+    seconds, w = 0.0, None
+    for i, th in enumerate(bends):
+        order = range(len(turns)) if i % 2 == 0 else range(len(turns) - 1, -1, -1)
+        for j in order:
+            w0 = peer.loop_start(nlp, float(th)) if w is None else w
+            r = peer.solve_grid_member(nlp, float(th), float(turns[j]), w0)
+            seconds += r["seconds"]
+            costs[i, j], success[i, j] = r["cost"], r["success"]
+            if r["success"]:
+                w = r["w"]
+    return dict(costs=costs, success=success, seconds=seconds, build_seconds=nlp["build_seconds"]), ""
+
+
+def figure(bends, turns, costs, peaks, status, hol, path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.6), layout="constrained")
+    failed = status != "converged"
+    for k, (values, title, unit) in enumerate(((costs, "least vibrational energy", "J s"),
+                                               (peaks, "peak input max |u(t)|", "rad/s"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        m = ax.pcolormesh(turns, bends, np.ma.masked_where(failed, values), shading="nearest", cmap="viridis")
+        fig.colorbar(m, ax=ax, label=f"[{unit}]")
+        inside = (hol >= turns.min()) & (hol <= turns.max())
+        ax.plot(hol[inside], bends[inside], "w--", lw=1.5,
+                label=r"fixed-$\theta$ loop's turn $-2\pi f(\theta_0)$")
+        if failed.any():
+            fi, fj = np.nonzero(failed)
+            ax.plot(turns[fj], bends[fi], "rx", ms=6, label="not converged")
+        ax.set(xlabel="turn of psi [rad]", ylabel=r"initial bend $\theta_0$ [rad]",
+               title=f"({'ab'[k]}) {title}")
+        ax.legend(loc="upper right", fontsize=8)
+    fig.suptitle(f"chart somersault, chi winds once (T = {T:g} s): {status.size} problems in one batched call")
+    fig.savefig(path, dpi=110)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="experiments/out")
+    ap.add_argument("--n", type=int, default=16, help="grid points per axis (n x n problems)")
+    ap.add_argument("--stages", type=int, default=4, help="continuation stages from the fixed-theta loop")
+    ap.add_argument("--no-ipopt", action="store_true", help="skip the CasADi + IPOPT peer")
+    a = ap.parse_args()
+    if a.n < 2 or a.stages < 1:
+        ap.error("--n must be >= 2 and --stages >= 1")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    load_start = os.getloadavg()
+    cat = FallingCatKinematic()
+    bends, turns = np.linspace(*BENDS, a.n), np.linspace(*TURNS, a.n)
+    r, first = solve_map(cat, bends, turns, a.stages, progress=True)
+    r, again = solve_map(cat, bends, turns, a.stages)
+    shape = (a.n, a.n)
+    costs, status = r.cost.reshape(shape), r.status.reshape(shape)
+    peaks = np.linalg.norm(r.controls, axis=-1).max(axis=-1).reshape(shape)
+    print(f"{r.status.size} problems, {a.stages} continuation stages: {r.counts()}; "
+          f"{first:.2f} s with the compile, {again:.3f} s after it ({again / r.status.size * 1e3:.2f} ms a problem)")
+    info = dict(command="nhjax run somersault_map " + " ".join(sys.argv[1:]), T=T, stages=a.stages,
+                turns=turns.tolist(), bends=bends.tolist(), costs=costs.tolist(), peak_inputs=peaks.tolist(),
+                status=status.tolist(), iterations_last_stage=r.iterations.reshape(shape).tolist(),
+                max_shooting_residual=float(np.nanmax(r.residual)), max_violation=float(np.nanmax(r.violation)),
+                batch_seconds_first=first, batch_seconds=again)
+    if not a.no_ipopt:
+        ip, why = ipopt_map(bends, turns)
+        if ip is None:
+            print(f"IPOPT peer skipped: {why}")
+            info["ipopt_skipped"] = why
+        else:
+            both = (status == "converged") & ip["success"]
+            rel = np.abs(costs - ip["costs"]) / np.abs(ip["costs"])
+            info.update(ipopt_seconds=ip["seconds"], ipopt_build_seconds=ip["build_seconds"],
+                        ipopt_costs=ip["costs"].tolist(), ipopt_success=ip["success"].tolist(),
+                        max_rel_diff_vs_ipopt=float(rel[both].max()) if both.any() else None,
+                        throughput_vs_ipopt=ip["seconds"] / again)
+            print(f"IPOPT one by one (N = 40 pl, RK4 x 4, neighbour warm starts): {ip['seconds']:.2f} s "
+                  f"(build {ip['build_seconds']:.2f} s), {int(ip['success'].sum())} succeeded; batch throughput "
+                  f"{ip['seconds'] / again:.1f}x IPOPT's; max relative cost difference {info['max_rel_diff_vs_ipopt']:.1e}")
+    load_end = os.getloadavg()
+    info.update(load_average_start=list(load_start), load_average_end=list(load_end))
+    (out / "somersault_map.json").write_text(json.dumps(info, indent=1))
+    figure(bends, turns, costs, peaks, status, holonomy(cat, bends), out / "somersault_map.png")
+    print(f"load average {load_start[0]:.2f} -> {load_end[0]:.2f}; wrote {out}/somersault_map.json and .png")
+
+
+if __name__ == "__main__":
+    main()
