@@ -11,7 +11,9 @@ rescheduled by Dask; ``retries`` reruns a task that raised outside ``fn``.
 
 ``somersault_turns`` is the example from the issue: the velocity-controlled falling
 cat's optimal somersault for each turn angle, by Pontryagin shooting (continuation
-from the fixed-theta loop), as a grid sweep.
+from the fixed-theta loop), as a grid sweep whose workers each solve a sub-grid in
+batched calls (``map_on_client(..., batched=True)`` with
+``controls.solve_pontryagin_batch``).
 
 This lives in ``controls`` (not ``nhjax.integrate.distributed``) because the
 simulator package imports nothing from ``controls``. Requires ``nhjax[dask]``.
@@ -30,7 +32,8 @@ __all__ = ["GridResult", "map_on_client", "somersault_turns"]
 @dataclasses.dataclass(frozen=True)
 class GridResult:
     """The sweep's outcome, in grid order: ``values[i]`` is ``fn(grid[i])`` (None where it
-    raised), ``status[i]`` is "ok" or "error", ``errors[i]`` the traceback text ("" if
+    raised), ``status[i]`` is "ok" or "error" (or, in a batched map, a member's own
+status such as "non_finite"), ``errors[i]`` the traceback text or reason ("" if
     ok)."""
 
     grid: list
@@ -53,28 +56,53 @@ def _run_points(fn, points):
     return out
 
 
-def map_on_client(client, fn: Callable[[Any], Any], grid, *, points_per_task: int = 1, retries: int = 2,
-                  progress: bool = False) -> GridResult:
+def _run_batch(fn, points):
+    """A sub-grid through one batched call: ``fn(points)`` returns one value per point;
+    a value that is a dict with a "status" other than "converged" carries that status
+    (and its "reason") into the grid's; if ``fn`` raises, every point of the task says so."""
+    try:
+        values = list(fn(points))
+    except Exception:  # noqa: BLE001 (one bad sub-grid must not end the sweep)
+        return [("error", None, traceback.format_exc())] * len(points)
+    if len(values) != len(points):
+        msg = f"the batched function returned {len(values)} values for {len(points)} points"
+        return [("error", None, msg)] * len(points)
+    out = []
+    for v in values:
+        status = v.get("status", "converged") if isinstance(v, dict) else "converged"
+        out.append(("ok", v, "") if status == "converged" else (status, v, v.get("reason", "")))
+    return out
+
+
+def map_on_client(client, fn: Callable[[Any], Any], grid, *, points_per_task: int | None = 1, retries: int = 2,
+                  progress: bool = False, batched: bool = False) -> GridResult:
     """``fn`` at every point of ``grid`` on the workers of ``client``; see the module docstring.
 
     fn : picklable callable (module-level function or a functools.partial of one);
         its return value must be picklable (numbers, numpy arrays, dicts of them).
     grid : a sequence of points (any picklable objects).
-    points_per_task : consecutive points evaluated by one task (and one worker).
+    points_per_task : consecutive points evaluated by one task (and one worker); None:
+        the grid split evenly over the cluster's workers (one task each).
     retries : reruns of a task that raised (worker-level failures).
     progress : a tqdm bar over points.
+    batched : ``fn`` takes a task's list of points and returns a list of values (e.g.
+        one ``controls.solve_pontryagin_batch`` for the whole sub-grid); a value that
+        is a dict with a "status" other than "converged" makes that the point's status.
     """
     from dask.distributed import as_completed
 
     grid = list(grid)
     if not callable(fn):
         raise TypeError(f"map_on_client: fn must be callable, got {fn!r}")
+    if points_per_task is None:
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        points_per_task = max(1, -(-len(grid) // workers))
     if int(points_per_task) < 1:
         raise ValueError(f"map_on_client: points_per_task must be a positive integer, got {points_per_task!r}")
     k = int(points_per_task)
     groups = [grid[i:i + k] for i in range(0, len(grid), k)]
     tag = uuid.uuid4().hex[:8]
-    futures = [client.submit(_run_points, fn, g, key=f"controls-grid-{tag}-{i}", retries=retries, pure=False)
+    futures = [client.submit(_run_batch if batched else _run_points, fn, g, key=f"controls-grid-{tag}-{i}", retries=retries, pure=False)
                for i, g in enumerate(groups)]
     index = {f.key: i for i, f in enumerate(futures)}
     done = [None] * len(futures)
@@ -114,12 +142,38 @@ def _somersault_turn(turn, theta0=0.6, T=2.0, steps=4):
             "iterations": int(r.iterations)}
 
 
-def somersault_turns(client, turns, *, theta0=0.6, T=2.0, points_per_task=1, progress=False) -> GridResult:
+def _somersault_turns_batch(turns, theta0=0.6, T=2.0, steps=4):
+    """A sub-grid of turns in one batched call per continuation stage
+    (``controls.solve_pontryagin_batch``): one dict per turn as ``_somersault_turn``'s,
+    with the member's status and reason."""
+    import numpy as np
+
+    import controls
+    from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+    from nhjax.scenes import FallingCatKinematic
+
+    cat = FallingCatKinematic()
+    p0, nu = (np.asarray(a) for a in fixed_theta_costates(cat, theta0, T))
+    start, turns = float(-2 * np.pi * cat.f(theta0)), np.asarray(turns, float)
+    z = np.tile(np.concatenate([p0, nu]), (len(turns), 1))
+    for v in np.linspace(0.0, 1.0, steps)[1:] if steps > 1 else [1.0]:
+        r = controls.solve_pontryagin_batch([velocity_somersault_chart(cat, theta0, start + v * (t - start), T)
+                                             for t in turns], z[:, :3], z[:, 3:], progress=False)
+        z = np.where(r.converged[:, None], np.concatenate([r.p0, r.nu], axis=1), z)
+    return [{"turn": float(t), "cost": float(r.cost[i]), "violation": float(r.violation[i]),
+             "iterations": int(r.iterations[i]), "status": str(r.status[i]), "reason": r.reasons[i]}
+            for i, t in enumerate(turns)]
+
+
+def somersault_turns(client, turns, *, theta0=0.6, T=2.0, points_per_task=None, progress=False) -> GridResult:
     """The velocity-controlled cat's optimal somersault (least vibrational energy (4.8),
     chi winding once, bent by ``theta0`` [rad] at both ends, ``T`` [s]) for each turn of
-    psi in ``turns`` [rad], solved by Pontryagin shooting on the workers of ``client``.
-    Each value is a dict with the turn, cost [J s], terminal violation and iterations."""
+    psi in ``turns`` [rad], solved by Pontryagin shooting on the workers of ``client``:
+    each worker's sub-grid (``points_per_task`` turns; default an even split) through
+    batched continuation from the fixed-theta loop (``controls.solve_pontryagin_batch``).
+    Each value is a dict with the turn, cost [J s], terminal violation, iterations,
+    status and reason; a member that did not converge has that status in the grid."""
     import functools
 
-    return map_on_client(client, functools.partial(_somersault_turn, theta0=theta0, T=T), turns,
-                         points_per_task=points_per_task, progress=progress)
+    return map_on_client(client, functools.partial(_somersault_turns_batch, theta0=theta0, T=T), turns,
+                         points_per_task=points_per_task, progress=progress, batched=True)

@@ -75,6 +75,7 @@ def test_tangents_mode_agrees_with_the_differentiated_loop():
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-11 * float(np.max(np.abs(b))))
 
 
+@pytest.mark.slow  # (25 s; make test-all)
 def test_auto_mode_follows_the_number_of_differentiated_inputs(monkeypatch):
     """auto: tangents for D <= max_tangents differentiated numbers, per-step VJPs above."""
     from nhjax.integrate import adjoint as A
@@ -162,6 +163,7 @@ def test_lie_group_state_gradient():
     assert float(jnp.max(jnp.abs(g_disc[0]))) > 1e-3  # the loss does depend on the torques
 
 
+@pytest.mark.slow  # (25 s; make test-all)
 def test_projected_steps_gradient():
     """A pendulum in Cartesian coordinates (|q| = 1): projection onto the position and
     velocity constraints after every step (Newton and a KKT solve inside the step map)."""

@@ -78,6 +78,7 @@ def test_input_errors():
         nhjax.simulate_batch(cat, jnp.tile(X, (250_000, 1)), 1.0, saveat=10_000)
 
 
+@pytest.mark.slow  # (subprocesses, 30-40 s; make test-all)
 def test_split_batch_on_two_workers_equals_one_chunk():
     """A batch big enough to be split across workers (2 x 300 members, threads) gives per
     member the result of one chunk on one thread and of a single simulate(), and keeps
@@ -210,6 +211,7 @@ def test_compiled_chunks_are_reused_only_for_the_same_configuration():
             np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow  # (subprocesses, 30-40 s; make test-all)
 def test_several_local_devices(tmp_path):
     """With two CPU devices (a fresh process with XLA's host device count set) the chunks
     run on both and the result is gathered in member order (this used to fail when the
@@ -244,6 +246,7 @@ def test_several_local_devices(tmp_path):
     assert loaded[0] == 0 and loaded[1] >= 2  # the second process ran stored executables
 
 
+@pytest.mark.slow  # (subprocesses, 30-40 s; make test-all)
 def test_two_workers_running_a_projected_batch_at_once_finish(tmp_path):
     """Two worker threads each running a chunk of a projected batch (the quaternion disk,
     128 members on 2 workers) finish, and every member's saved states are on S^3 and
@@ -277,7 +280,8 @@ def test_two_workers_running_a_projected_batch_at_once_finish(tmp_path):
     assert most > fewest  # members of different lengths
 
 
-@pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), (8, "many"), (8, 2)])
+@pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), pytest.param(8, "many", marks=pytest.mark.slow),
+                                           pytest.param(8, 2, marks=pytest.mark.slow)])
 def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
     """Members whose step counts differ more than 10x, fewer lanes than members (each lane
     is refilled several times), saved times in between and a member stopped by the chart

@@ -111,6 +111,13 @@ def _sqrt_or_fail(x):
     return float(np.sqrt(x))
 
 
+def _roots_or_fail(points):
+    if any(isinstance(x, str) for x in points):
+        raise TypeError("not a number in this sub-grid")
+    return [{"root": float(np.sqrt(x)), "status": "converged"} if x >= 0
+            else {"root": None, "status": "negative", "reason": "no real root"} for x in points]
+
+
 def test_grid_map_keeps_order_and_statuses(client):
     from controls.distributed import map_on_client
 
@@ -121,14 +128,25 @@ def test_grid_map_keeps_order_and_statuses(client):
     assert r.values[0] == 2.0 and r.values[2] == 3.0 and r.values[3] == np.sqrt(2.0) and r.values[4] == 4.0
 
 
+def test_batched_map_carries_member_statuses_and_failed_tasks(client):
+    """A batched map: one call per task's sub-grid; a member's own status reaches the
+    grid, and a task whose call raises marks each of its points as an error."""
+    from controls.distributed import map_on_client
+
+    r = map_on_client(client, _roots_or_fail, [4.0, -1.0, 9.0, "x", 16.0], points_per_task=2, batched=True)
+    assert r.status == ["ok", "negative", "error", "error", "ok"]
+    assert r.values[0]["root"] == 2.0 and r.values[4]["root"] == 4.0 and r.errors[1] == "no real root"
+    assert "not a number" in r.errors[2] and r.errors[2] == r.errors[3]
+
+
 def test_somersaults_over_turn_angles_equal_local_solves(client):
     """Pontryagin somersaults for two turn angles on the workers against the same solves
     here: the same costs to 1e-12 (relative), every terminal violation tiny."""
     from controls.distributed import _somersault_turn, somersault_turns
 
-    turns = [-np.pi, -2.5]
-    r = somersault_turns(client, turns)
-    assert r.status == ["ok", "ok"], r.errors
+    turns = [-np.pi, -2.5, -2.8]
+    r = somersault_turns(client, turns)  # (a sub-grid per worker, each in batched calls)
+    assert r.status == ["ok", "ok", "ok"], r.errors
     for turn, v in zip(turns, r.values):
         here = _somersault_turn(turn)
         assert abs(v["cost"] - here["cost"]) <= 1e-12 * abs(here["cost"])

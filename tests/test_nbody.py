@@ -200,6 +200,7 @@ class Collapse(eqx.Module):
         return jnp.stack([-2.0 * x[1][0], jnp.ones_like(t)])
 
 
+@pytest.mark.slow  # (16 s; make test-all)
 def test_near_collinear_shapes_stop_cleanly():
     """Where SO(3) stops acting freely (collinear bodies) the locked inertia is singular:
     a shape that tends to a line is stopped by the locked_inertia guard when its

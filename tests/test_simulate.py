@@ -102,6 +102,7 @@ def test_same_result_under_jit_and_runtime_errors():
         jax.block_until_ready(toward_zero(cat.initial_state(0.3, theta_dot=-1.0)))
 
 
+@pytest.mark.slow  # (20-50 s; make test-all)
 def test_a_projected_solve_saves_the_same_states_eager_and_under_jit():
     """A projected solve's saved states (dense output between projected steps) are
     projected onto the constraints: in an eager call by its diagnostics program (with or
@@ -139,6 +140,7 @@ class _WholeProjectionCat(nhjax.scenes.FallingCatLagrangian):
         return super().project(t, x, fixed)
 
 
+@pytest.mark.slow  # (20-50 s; make test-all)
 def test_the_split_projection_takes_the_steps_of_the_whole_one():
     """A projected solve of a constrained Lagrangian projects the positions after each
     step and the velocities with the next step's first stage (one evaluation of M and A

@@ -272,6 +272,7 @@ PROBES = {
     "controls.prepare_pontryagin": lambda: controls.prepare_pontryagin(_ocp(), tol=-1.0),
     "controls.prepare_pmp_residual": lambda: controls.prepare_pmp_residual(_ocp(), "not a control"),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
+    "controls.solve_pontryagin_batch": lambda: controls.solve_pontryagin_batch([_ocp(), _ocp()], rtol=-1.0),
     "nhjax.simulate_batch": lambda: nhjax.simulate_batch(OSC, jnp.ones((4, 3)), 1.0),
     "nhjax.PiecewiseConstant": lambda: nhjax.PiecewiseConstant([0.0, 1.0], [[1.0], [2.0]]),
     "nhjax.PiecewiseLinear": lambda: nhjax.PiecewiseLinear([0.0, 1.0], [[np.nan], [1.0]]),
@@ -312,6 +313,7 @@ EXEMPT = {
     "nhjax.mechanics.body_angular_velocity": "pure function of arrays (runs traced)",
     "nhjax.scenes.REGISTRY": "dict of the scene classes (each probed below)",
     "controls.DirectResult": "result container", "controls.IndirectResult": "result container",
+    "controls.BatchResult": "result container returned by solve_pontryagin_batch",
     "controls.HamiltonianSystem": "built by solve_pontryagin from a checked OCP",
 }
 # Public names checked with plain ValueError: none left (the signals use the layer too).

@@ -66,6 +66,7 @@ def _probe(early_jax=False, **env):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow  # (a subprocess, 15 s; make test-all)
 def test_small_loops_are_compiled_as_one_function_and_give_the_same_numbers():
     on = _probe()
     off = _probe(NHJAX_SMALL_LOOP_BYTES="0")
