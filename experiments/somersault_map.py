@@ -73,8 +73,11 @@ def solve_map(cat, bends, turns, stages, progress=False):
         tols = dict(rtol=1e-8, atol=1e-8, tol=1e-6) if k <= stages else {}
         turn = hol + (TU - hol) * min(k, stages) / stages
         # the members differ from the final problems in the target turn only
-        stage = [eqx.tree_at(lambda o: o.terminal_constraints.target, o, o.terminal_constraints.target.at[2].set(t))
-                 for o, t in zip(ocps, turn)] if k < stages else ocps
+        # (numpy targets: an eager jax update per member would be a dispatched program each)
+        targets = np.stack([np.asarray(o.terminal_constraints.target) for o in ocps])
+        targets[:, 2] = turn
+        stage = [eqx.tree_at(lambda o: o.terminal_constraints.target, o, g)
+                 for o, g in zip(ocps, targets)] if k < stages else ocps
         r = controls.solve_pontryagin_batch(stage, z[:, :3], z[:, 3:], progress=progress, **tols)
         # a member that failed at a stage keeps its last good start (its status says so at the end)
         z = np.where(r.converged[:, None], np.concatenate([r.p0, r.nu], axis=1), z)
