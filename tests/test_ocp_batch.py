@@ -105,3 +105,25 @@ def test_a_failing_member_does_not_spoil_the_others():
     assert list(short.status) == ["max_iterations"] * 2 and "1 steps" in short.reasons[0]
     with pytest.raises(controls.ProblemError, match="every member"):
         controls.solve_pontryagin_batch([good[0]], znan[:3], znan[3:], progress=False)
+
+
+def test_continuation_along_the_grid_converges_a_member_from_its_neighbour():
+    """Six turns of the bent cat (bend 1.0) from its loop's holonomy to -4 rad, all from
+    the loop's costates: the farthest fails from there; with grid=(6,) it is solved again
+    from its converged neighbour's solution and converges, to an extremal that
+    solve_pontryagin confirms (converged at once from it, the same cost to 1e-12); the
+    grid's shape is checked before any numerics."""
+    cat = FallingCatKinematic()
+    turns = _holonomy(cat, 1.0) + np.linspace(0.0, -4.0 - _holonomy(cat, 1.0), 6)
+    ocps = [velocity_somersault_chart(cat, 1.0, t, T) for t in turns]
+    z = np.concatenate(fixed_theta_costates(cat, 1.0, T))
+    plain = controls.solve_pontryagin_batch(ocps, z[:3], z[3:], progress=False)
+    assert not plain.converged[-1] and (plain.started_from == -1).all()
+    r = controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(6,), progress=False)
+    assert r.converged.all() and r.started_from[-1] >= 0
+    np.testing.assert_array_equal(r.cost[plain.converged], plain.cost[plain.converged])
+    alone = controls.solve_pontryagin(ocps[-1], r.p0[-1], r.nu[-1], progress=False)
+    assert alone.converged and alone.iterations <= 2
+    assert abs(alone.cost - r.cost[-1]) <= 1e-12 * abs(alone.cost)
+    with pytest.raises(controls.ProblemError, match=r"grid \(2, 2\) does not hold the 6"):
+        controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(2, 2), progress=False)
