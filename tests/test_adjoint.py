@@ -65,6 +65,7 @@ def test_cat_gradient_equals_differentiated_loop_and_fd(saveat):
     np.testing.assert_allclose(got, np.asarray(fd), rtol=2e-5)
 
 
+@pytest.mark.slow  # (17 s; tangents on defaults are checked by test_first_answers and the [41] case above)
 def test_tangents_mode_agrees_with_the_differentiated_loop():
     """Forward sensitivities carried through the solve ("tangents"), here with all D = 9
     inputs of the cat loss (amplitudes, lam, initial state; saved states and work)."""

@@ -27,6 +27,7 @@ def test_backward_stable_on_random_and_pivot_needing_systems(n):
             np.testing.assert_allclose(x, np.linalg.solve(A, rhs), rtol=1e-9 * np.linalg.cond(A), atol=1e-12)
 
 
+@pytest.mark.slow  # (17 s; make test-all)
 def test_derivatives_match_lapack_solve_and_singular_gives_nonfinite():
     A = jnp.array([[0.0, 2.0, 1.0], [1.0, 1.0, 0.5], [3.0, -1.0, 2.0]])  # needs a row exchange
     b = jnp.array([1.0, -2.0, 0.5])
