@@ -118,42 +118,26 @@ X = np.stack([rng.uniform(0.6, 1.4, 256), rng.uniform(-1, 1, 256), np.zeros(256)
               rng.uniform(-0.5, 0.5, 256)], 1)""",
 }
 
+#: A final angle of the torque-driven cat as a function of the torque amplitudes,
+#: through simulate on its defaults (and with DiscreteAdjoint): the gradient rows' setup.
+_CAT_LOSS = """
+system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
+import jax.numpy as jnp
+def loss(amp):
+    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
+    return nhjax.simulate(system, x0, 10.0, control=u{adjoint}).xs[-1, 2]
+amp = jnp.array([0.04, 0.02])
+"""
+_CAT_LOSS, _CAT_LOSS_DISCRETE_ADJOINT = (_CAT_LOSS.format(adjoint=a) for a in ("", ", adjoint=nhjax.DiscreteAdjoint()"))
+
 PATH_CASES = {
     # every other public path a notebook user takes, each from its first call: gradients
     # around simulate (reverse and forward mode, on simulate's defaults), impacts and their
     # derivatives and batches, the reduction geometry; ``call`` is what is timed
-    "jax.grad through simulate (FallingCat, defaults)": """
-system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
-import jax.numpy as jnp
-def loss(amp):
-    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
-    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
-amp = jnp.array([0.04, 0.02])
-call = lambda: jax.grad(loss)(amp)""",
-    "jax.jacfwd through simulate (FallingCat, defaults)": """
-system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
-import jax.numpy as jnp
-def loss(amp):
-    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
-    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
-amp = jnp.array([0.04, 0.02])
-call = lambda: jax.jacfwd(loss)(amp)""",
-    "jax.jit(jax.grad) through simulate (FallingCat, defaults)": """
-system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
-import jax.numpy as jnp
-def loss(amp):
-    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
-    return nhjax.simulate(system, x0, 10.0, control=u).xs[-1, 2]
-amp = jnp.array([0.04, 0.02])
-call = (lambda f: lambda: f(amp))(jax.jit(jax.grad(loss)))""",
-    "jax.grad through simulate (DiscreteAdjoint)": """
-system = S.FallingCat(); x0 = system.initial_state(0.8, chi_dot=0.5)
-import jax.numpy as jnp
-def loss(amp):
-    u = nhjax.Sinusoids(jnp.zeros(2), amp, jnp.array([1.7, 0.9]), jnp.array([0.0, np.pi / 2]))
-    return nhjax.simulate(system, x0, 10.0, control=u, adjoint=nhjax.DiscreteAdjoint()).xs[-1, 2]
-amp = jnp.array([0.04, 0.02])
-call = lambda: jax.grad(loss)(amp)""",
+    "jax.grad through simulate (FallingCat, defaults)": _CAT_LOSS + "call = lambda: jax.grad(loss)(amp)",
+    "jax.jacfwd through simulate (FallingCat, defaults)": _CAT_LOSS + "call = lambda: jax.jacfwd(loss)(amp)",
+    "jax.jit(jax.grad) through simulate (FallingCat, defaults)": _CAT_LOSS + "call = (lambda f: lambda: f(amp))(jax.jit(jax.grad(loss)))",
+    "jax.grad through simulate (DiscreteAdjoint)": _CAT_LOSS_DISCRETE_ADJOINT + "call = lambda: jax.grad(loss)(amp)",
     "simulate_impacts (BouncingBall, 2 s)": """
 system = S.BouncingBall(); x0 = system.initial_state(0.1)
 call = lambda: nhjax.simulate_impacts(system, x0, 2.0)""",

@@ -33,7 +33,14 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
-from .pontryagin import HamiltonianSystem, _check_pontryagin, _indirect_body, _root_options, _Shooting
+from .pontryagin import (
+    HamiltonianSystem,
+    _check_pontryagin,
+    _indirect_body,
+    _root_options,
+    _Shooting,
+    _shooting_converged,
+)
 from .problem import OCP, ProblemError, Progress, check_tolerances, compiled, host_array
 
 __all__ = ["BatchResult", "GridError", "solve_pontryagin_batch", "stack_members"]
@@ -56,6 +63,11 @@ def _is_number(x) -> bool:
     return isinstance(x, (float, np.floating))
 
 
+def _kind(x):
+    """(shape, True) for a number leaf, (None, False) for any other: what members must share."""
+    return (np.shape(x), True) if _is_number(x) else (None, False)
+
+
 def _path_name(path) -> str:
     return "".join(str(k) for k in path) or "(the member itself)"
 
@@ -64,19 +76,19 @@ def stack_members(members, *, owner: str = "stack_members", what: str = "member"
     """One pytree whose number leaves (arrays and floats, ``_is_number``) are the
     members' leaves stacked on a new leading axis; everything else must be equal
     across members. Raises ``GridError`` naming the first member and field that
-    differ (types, tree structure, an array's shape or dtype, a non-number leaf)."""
+    differ (types, tree structure, an array's shape, a non-number leaf)."""
     members = list(members)
     if not members:
         raise ProblemError(f"{owner}: no {what}s: pass a non-empty list")
     first = members[0]
     flat0, tree0 = jtu.tree_flatten(first)
-    kinds0 = [(np.shape(v), True) if _is_number(v) else (None, False) for v in flat0]
+    kinds0 = [_kind(v) for v in flat0]
     flats = [flat0]
     for member in members[1:]:
         flat, tree = jtu.tree_flatten(member)
         flats.append(flat)
         if (type(member) is not type(first) or tree != tree0 or len(flat) != len(flat0)
-                or any(((np.shape(v), True) if _is_number(v) else (None, False)) != k for v, k in zip(flat, kinds0))
+                or any(_kind(v) != k for v, k in zip(flat, kinds0))
                 or any(not k[1] and not _same(v, v0) for v, v0, k in zip(flat, flat0, kinds0))):
             break
     else:
@@ -302,7 +314,7 @@ def solve_pontryagin_batch(
     started_from = np.full(B, -1)
     if coords is not None:
         for _ in range(int(grid_rounds)):
-            ok = finite & np.isfinite(res) & (res < 1e3 * tol)
+            ok = finite & _shooting_converged(res, tol)
             failed = finite & ~ok
             if not failed.any() or not ok.any():
                 break
@@ -313,7 +325,7 @@ def solve_pontryagin_batch(
             start = z.copy()
             start[failed] = z[nearest]
             again = run(np.where(finite[:, None], start, z0))
-            gained = failed & np.isfinite(again[1]) & (again[1] < 1e3 * tol)
+            gained = failed & _shooting_converged(again[1], tol)
             if not gained.any():
                 break
             for mine, new in zip((z, res, cost, viol, xs, ts, us, steps), again):
@@ -354,7 +366,7 @@ def _statuses(z, res, steps, finite, tol, max_steps, solver):
             s, why = "non_finite", ("the iteration left the region where the extremal can be integrated or "
                                     "diverged to NaN/inf" + ("; try solver='lm' or a closer guess"
                                                              if solver == "newton" else "; try a closer guess"))
-        elif res[i] < 1e3 * tol:
+        elif _shooting_converged(res[i], tol):
             s, why = "converged", ""
         elif steps[i] >= max_steps:
             s, why = "max_iterations", f"{max_steps} steps taken, shooting residual still {res[i]:.2e}"

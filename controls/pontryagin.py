@@ -147,6 +147,14 @@ class IndirectResult:
     iterations: int
 
 
+def _shooting_converged(residual, tol):
+    """The solvers' test of convergence (elementwise on arrays): a finite shooting
+    residual below 1e3 tol (the iteration stops at tol relative to the unknowns, or
+    at the residual's floor; see ``_shooting_root``)."""
+    residual = np.asarray(residual, float)
+    return np.isfinite(residual) & (residual < 1e3 * tol)
+
+
 def _shoot(ham: HamiltonianSystem, rtol, atol, saveat=2, t0=0.0, t1=None, x0=None, p0=None):
     y0 = jnp.concatenate([x0, p0])
     # forward-mode adjoint: the shooting Jacobian is a jvp per unknown (Newton, LM)
@@ -564,7 +572,7 @@ def solve_pontryagin(
                 "diverged to NaN/inf, from a finite start (a Newton step was too long); try solver='lm' "
                 "(damped steps), a closer p0_guess, or continuation from an easier problem")
         p0, nu = z[:n], z[n:n + m]
-        converged = bool(np.isfinite(res)) and res < 1e3 * tol
+        converged = bool(_shooting_converged(res, tol))
         bar.update(iterations=int(steps), cost=float(cost), violation=f"{viol:.1e}", residual=f"{res:.1e}")
     finally:
         bar.finish(converged)

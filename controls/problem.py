@@ -224,6 +224,15 @@ _N_CONSTRAINTS: dict = {}
 _SHAPES_CHECKED: set = set()
 
 
+def _structure_key(tree):
+    """A key of ``tree``'s structure for the caches of structural answers: the tree,
+    its arrays' shapes and dtypes, and its other leaves themselves (a function that is
+    no pytree, e.g. a lambda, is its own leaf: keyed by identity; unhashable leaves
+    make the key unhashable, and the callers then do not cache)."""
+    return (jtu.tree_structure(tree),
+            tuple((np.shape(a), a.dtype) if eqx.is_array(a) else a for a in jtu.tree_leaves(tree)))
+
+
 def check_tolerances(owner, **tols):
     """Positive finite tolerances (and integer budgets, passed as (value, 'int'))."""
     with as_problem_error():
@@ -398,9 +407,8 @@ class OCP(eqx.Module):
     def _check_shapes(self):
         # a structural question: answered once per structure (three traces of the model
         # otherwise, ~25 ms per problem: a grid of problems builds hundreds)
-        parts = (self.system, self.x0, self.running_cost, self.terminal_cost, self.terminal_constraints)
-        key = (jtu.tree_structure(parts), tuple((np.shape(a), a.dtype) if eqx.is_array(a) else a
-                                                for a in jtu.tree_leaves(parts)))
+        key = _structure_key((self.system, self.x0, self.running_cost, self.terminal_cost,
+                              self.terminal_constraints))
         try:
             if key in _SHAPES_CHECKED:
                 return
@@ -444,10 +452,7 @@ class OCP(eqx.Module):
             return 0
         # a structural question, asked by every solve: traced once per structure
         # (a function that is no pytree, e.g. a lambda, is its own leaf: keyed by identity)
-        key = (jtu.tree_structure(self.terminal_constraints),
-               tuple((np.shape(a), a.dtype) if eqx.is_array(a) else a
-                     for a in jtu.tree_leaves(self.terminal_constraints)),
-               jtu.tree_structure(self.x0), tuple(np.shape(a) for a in jtu.tree_leaves(self.x0)))
+        key = _structure_key((self.terminal_constraints, self.x0))
         try:
             return _N_CONSTRAINTS[key]
         except (KeyError, TypeError):
