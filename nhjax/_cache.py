@@ -39,8 +39,9 @@ def default_dir(environ=os.environ) -> str:
     return os.path.join(base, "nhjax", "xla")
 
 
-def _own(path: str) -> bool:
-    """Whether ``path`` is this user's and only this user can write it."""
+def own(path: str) -> bool:
+    """Whether ``path`` is this user's and only this user can write it (the test for a
+    cache directory, here and for each file's directory in ``nhjax._programs``)."""
     if not hasattr(os, "getuid"):
         return True
     st = os.stat(path)
@@ -61,7 +62,7 @@ def configure(environ=os.environ) -> str | None:
         os.makedirs(path, exist_ok=True, mode=0o700)
     except OSError:  # read-only home, say: no cache rather than no nhjax
         return None
-    if not _own(path):
+    if not own(path):
         import warnings
 
         warnings.warn(f"nhjax: the cache directory {path} belongs to another user or is writable by "

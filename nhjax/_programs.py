@@ -68,6 +68,8 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from . import _cache
+
 FORMAT = 2
 MAX_BYTES = 256 * 2**20
 #: Modules whose classes and functions are identified by name (their code is covered
@@ -455,11 +457,10 @@ def trusted(path: Path) -> bool:
     """Whether ``path`` may be read back: owned by this user, in a directory this user
     owns that neither group nor others can write. Warns once per directory otherwise."""
     try:
-        st, dst = path.stat(), path.parent.stat()
+        # the directory as nhjax._cache requires of the cache directory, and the file its user's
+        ok = _cache.own(str(path.parent)) and (not hasattr(os, "getuid") or path.stat().st_uid == os.getuid())
     except OSError:
         return False
-    uid = os.getuid() if hasattr(os, "getuid") else None
-    ok = uid is None or (st.st_uid == uid and dst.st_uid == uid and not dst.st_mode & 0o022)
     if not ok and str(path.parent) not in _WARNED:
         _WARNED.add(str(path.parent))
         import warnings
