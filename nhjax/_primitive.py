@@ -556,7 +556,9 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
     programs (module docstring). ``forward(args)`` / ``reverse(args, nz)``: the
     arguments of the forward- and reverse-mode variants (same array structure; ``nz``:
     ``args`` with True where an array carries a tangent, False elsewhere); default
-    ``args``; ``variant_key``: whatever else the variants depend on (hashable). ``lazy``:
+    ``args``; ``variant_key``: whatever else the variants depend on (hashable; part of
+    the in-memory lookup of the call's programs, whose disk names come from the variants'
+    own arguments). ``lazy``:
     reverse mode runs the function's own program and differentiates only when a cotangent
     reaches its outputs (for outputs that are seldom differentiated). ``max_tangents``:
     reverse mode in at most that many input numbers runs forward mode instead (the JVP
@@ -603,7 +605,7 @@ def _spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
         quick = None
     if quick is not None and quick in _SPECS:
         return _SPECS[quick]
-    spec = _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_key)
+    spec = _make_spec(name, fn, args, options, error_mode, forward, reverse)
     if quick is not None:
         _SPECS[quick] = spec
     return spec
@@ -623,7 +625,7 @@ def _flat_fn(fn, args, box):
     return flat
 
 
-def _make_spec(name, fn, args, options, error_mode, forward, reverse, variant_key):
+def _make_spec(name, fn, args, options, error_mode, forward, reverse):
     """The Spec of ``fn`` on ``args``: nothing is traced here (the first program that runs
     traces, and records the outputs' shapes for the others)."""
     try:  # (the eager path's name: the same program on disk)
