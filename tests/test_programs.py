@@ -141,32 +141,17 @@ print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), drift={k: float(v) for k, v
 """
 
 
+def _run_child(tmp_path):
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
 def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     """Two fresh processes share a cache directory: the second traces no solve and no
     batch chunk, loads their programs, and returns the first one's trajectory,
-    diagnostics and batch members bit for bit; so do two more after the stored
-    executables are deleted (the first of them stores them again, the second loads
-    them)."""
-    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
-
-    def run():
-        out = subprocess.run([sys.executable, "-c", _CHILD], capture_output=True, text=True, env=env, check=True)
-        return json.loads(out.stdout.strip().splitlines()[-1])
-
-    first, second = run(), run()
-    # executables gone (an older cache, or evicted) while the traces stay: the third
-    # process compiles each program again (JAX's cache off: an executable from there,
-    # or compiled after one in the same process, would load broken) and stores it, and
-    # the fourth loads them and must give the same results
-    exes = sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe"))
-    for exe in exes:
-        (tmp_path / "nhjax-programs" / exe).unlink()
-    third, fourth = run(), run()
-    for later in (third, fourth):
-        assert later["traces"] == 0 and later["xs"] == first["xs"] and later["batch"] == first["batch"]
-        assert later["steps"] == first["steps"] and later["drift"] == first["drift"]
-    assert sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe")) == exes
-    assert third["stats"]["executables"] == 0 and fourth["stats"]["executables"] >= 4
+    diagnostics and batch members bit for bit."""
+    first, second = _run_child(tmp_path), _run_child(tmp_path)
     assert first["traces"] == 1 and first["batch_traces"] == 1
     assert first["stats"]["stored"] >= 4  # report, solve, diagnostics, batch chunk
     assert second["traces"] == 0 and second["batch_traces"] == 0
@@ -176,6 +161,24 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     assert second["batch"] == first["batch"] and second["steps"] == first["steps"]
     assert len(set(first["steps"])) > 1  # members of different lengths
 
+
+@pytest.mark.slow
+def test_a_new_process_compiles_again_what_lost_its_executable(tmp_path):
+    """Executables gone (an older cache, or evicted) while the traces stay: the next
+    process compiles each program again (JAX's cache off: an executable from there, or
+    compiled after one in the same process, would load broken) and stores it, and the
+    one after loads them; both give the first process's results bit for bit."""
+    first = _run_child(tmp_path)
+    exes = sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe"))
+    assert exes
+    for exe in exes:
+        (tmp_path / "nhjax-programs" / exe).unlink()
+    third, fourth = _run_child(tmp_path), _run_child(tmp_path)
+    for later in (third, fourth):
+        assert later["traces"] == 0 and later["xs"] == first["xs"] and later["batch"] == first["batch"]
+        assert later["steps"] == first["steps"] and later["drift"] == first["drift"]
+    assert sorted(p.name for p in (tmp_path / "nhjax-programs").glob("*.exe")) == exes
+    assert third["stats"]["executables"] == 0 and fourth["stats"]["executables"] >= 4
 
 
 def test_tracing_pauses_the_cycle_collector_and_restores_it(tmp_path, monkeypatch):
