@@ -1,18 +1,8 @@
-import os
-import tempfile
-
 import jax
 import numpy as np
 import pytest
 
-import nhjax  # noqa: F401  (switches float64 on)
-
-# Many tests compile the same XLA programs through different Python callables; a
-# session-local persistent cache lets the second one load instead of compiling.
-# One directory per pytest-xdist worker: workers never read each other's half-written entries.
-_worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), f"nhjax-test-xla-cache-{_worker}"))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# the compilation cache of the tests is set up by the repository's conftest.py
 
 
 @pytest.fixture

@@ -1,0 +1,16 @@
+"""Set-up for every test the default run collects: tests/, notebooks/ (nbmake) and the
+Python blocks of README.md and docs/ (pytest-markdown-docs)."""
+
+import os
+import tempfile
+
+import jax
+
+import nhjax  # noqa: F401  (switches float64 on)
+
+# Many tests compile the same XLA programs through different Python callables; a
+# session-local persistent cache lets the second one load instead of compiling.
+# One directory per pytest-xdist worker: workers never read each other's half-written entries.
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), f"nhjax-test-xla-cache-{_worker}"))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
