@@ -5,6 +5,7 @@ import os
 import tempfile
 
 import jax
+import pytest
 
 import nhjax  # noqa: F401  (switches float64 on)
 
@@ -14,3 +15,14 @@ import nhjax  # noqa: F401  (switches float64 on)
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
 jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), f"nhjax-test-xla-cache-{_worker}"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_collect_file(file_path, parent):
+    """pytest-markdown-docs runs the Python blocks of Markdown files; it would also import
+    every Python file under the test paths to look for blocks in their docstrings (there
+    are none: the docstrings are not Markdown pages), which costs seconds per worker."""
+    collectors = yield
+    if file_path.suffix == ".py":
+        collectors = [c for c in collectors if type(c).__name__ != "MarkdownDocstringCodeModule"]
+    return collectors
