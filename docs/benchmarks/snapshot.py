@@ -7,7 +7,9 @@ copies each into ``docs/benchmarks/data/NAME.json``, adding to its ``meta`` what
 page prints beside every figure when the benchmark did not record it: the date
 (``measured``, from the file's modification time) and the machine (``platform``,
 ``cpu_count``: this machine's, so snapshot on the machine that ran the benchmark).
-A benchmark that records no load average is printed with "load not recorded".
+A benchmark that records no load average is printed with "load not recorded". The
+benchmark's plot ``NAME.png``, if it wrote one, is copied to ``docs/benchmarks/NAME.png``
+and shown under the tables.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -36,6 +39,9 @@ def snapshot(path: Path) -> Path:
     DATA.mkdir(exist_ok=True)
     target = DATA / path.name
     target.write_text(json.dumps(out, indent=1) + "\n")
+    plot = path.with_suffix(".png")
+    if plot.is_file():
+        shutil.copy2(plot, DATA.parent / plot.name)
     return target
 
 

@@ -44,9 +44,11 @@ def _bench(name: str) -> str:
                           f"python docs/benchmarks/snapshot.py {name}")
     data = json.loads(path.read_text())
     try:
-        return globals()[f"_table_{name}"](data)
+        tables = globals()[f"_table_{name}"](data)
     except KeyError as e:
         raise PluginError(f"benchmarks page: no table for {name} (or a field {e} missing from {path})") from None
+    plot = DATA.parent / f"{name}.png"
+    return tables + (f"\n\n![{name}: the benchmark's plot of this run](benchmarks/{name}.png)" if plot.is_file() else "")
 
 
 def _run(meta) -> str:
