@@ -7,13 +7,15 @@ BIN    := $(VENV)/bin
 PIP    := $(BIN)/python -m pip install --disable-pip-version-check -q -c constraints.txt
 export MPLBACKEND ?= Agg
 
-.PHONY: demo test test-all bench clean
+.PHONY: demo test test-all bench docs docs-notebooks clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
+# the tests build the docs site (tests/test_docs.py) and run the Python blocks of
+# README.md and docs/ (pytest-markdown-docs), so the docs extra is part of the setup
 $(VENV)/.core: pyproject.toml constraints.txt | $(BIN)/python
-	$(PIP) -e '.[test]'
+	$(PIP) -e '.[test,docs]'
 	@touch $@
 
 # the peers extra (scipy, numba, casadi) so that every peer of BENCHMARKS.md runs in
@@ -34,5 +36,16 @@ test-all: $(VENV)/.core
 bench: $(VENV)/.bench
 	$(BIN)/nhjax bench
 
+# the site in site/; the notebook pages show the outputs stored in docs/notebooks/
+docs: $(VENV)/.core
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict
+
+# execute notebooks/*.ipynb and store the executed copies (with their figures) in
+# docs/notebooks/, which the notebook pages render; run after changing a notebook
+# (tests/test_docs.py fails while a copy's code differs from its notebook)
+docs-notebooks: $(VENV)/.core
+	cd notebooks && MPLBACKEND=module://matplotlib_inline.backend_inline ../$(BIN)/jupyter nbconvert \
+	    --to notebook --execute --ExecutePreprocessor.timeout=1800 --output-dir ../docs/notebooks *.ipynb
+
 clean:
-	rm -rf $(VENV) experiments/out benchmarks/out
+	rm -rf $(VENV) experiments/out benchmarks/out site

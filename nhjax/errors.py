@@ -60,7 +60,7 @@ class ParameterError(NhjaxError, ValueError):
 class StateError(NhjaxError, ValueError):
     """An initial state does not fit the system: wrong structure, shape, length, or NaN/inf.
 
-    Attributes: ``name`` (the argument, e.g. "x0" or "x0[0][1]").
+    Attributes: ``name`` (the argument, e.g. ``"x0"`` or ``"x0[0][1]"``).
     """
 
     def __init__(self, message: str, name: str = "x0"):
@@ -72,7 +72,7 @@ class GroupMembershipError(StateError):
     """A group-valued part of a state (rotation matrix, unit quaternion, SE(2) pose)
     is off its group by more than the tolerance.
 
-    Attributes: ``name`` (the part, e.g. "x0[0][1]"), ``residual``, ``tol``.
+    Attributes: ``name`` (the part, e.g. ``"x0[0][1]"``), ``residual``, ``tol``.
     """
 
     def __init__(self, message: str, name: str, residual: float, tol: float):

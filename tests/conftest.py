@@ -1,28 +1,8 @@
-import os
-import tempfile
-
-# The tests check results, not speed, and most of their time is XLA compiling programs
-# that run once: LLVM's cheaper pipeline (no optimization passes) takes about a third
-# less CPU for the same programs. The arithmetic is the same up to the last bits (e.g.
-# where the optimized build fuses a multiply-add). Set before JAX starts its
-# backend (it reads XLA_FLAGS once); subprocesses and notebook kernels inherit it. An
-# optimization level already in XLA_FLAGS is kept.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-                               " --xla_llvm_disable_expensive_passes=true").strip()
-
 import jax
 import numpy as np
 import pytest
 
-import nhjax  # noqa: F401  (switches float64 on)
-
-# Many tests compile the same XLA programs through different Python callables; a
-# session-local persistent cache lets the second one load instead of compiling.
-# One directory per pytest-xdist worker: workers never read each other's half-written entries.
-_worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), f"nhjax-test-xla-cache-{_worker}"))
-jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+# the compilation cache of the tests is set up by the repository's conftest.py
 
 
 @pytest.fixture

@@ -814,6 +814,8 @@ def simulate_impacts(
         "reverse" (jax.grad / jax.vjp: the event loop is a checkpointed while loop of at
         most max_steps iterations, as diffrax's RecursiveCheckpointAdjoint). Same values.
 
+    Notes
+    -----
     Returns an ``ImpactTrajectory``. Jit, vmap and forward-mode differentiation go
     through (then failures become ``equinox.error_if`` runtime errors); for batches
     see ``simulate_impacts_batch``; the pure per-member function is ``solve_impacts``.

@@ -810,6 +810,8 @@ def simulate(
     diagnostics : compute invariants, constraint residuals and the controls at the
         saved times (False: a smaller program, e.g. inside an optimizer).
 
+    Notes
+    -----
     What the extras cost (``benchmarks/batch_throughput.py`` measures them):
 
     * saved times: one dense-output evaluation (a polynomial, and an exponential on
