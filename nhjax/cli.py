@@ -31,6 +31,7 @@ import argparse
 import contextlib
 import importlib.resources
 import os
+import re
 import runpy
 import sys
 import types
@@ -58,12 +59,25 @@ class Experiment:
         return self.source.read_text()
 
     def doc_line(self) -> str:
+        """The first sentence of the script's docstring, as plain text."""
         text = self.text()
         for quote in ('"""', "'''"):
             if quote in text:
-                doc = text.split(quote)[1].strip().splitlines()
-                return doc[0] if doc else ""
+                return first_sentence(text.split(quote)[1])
         return ""
+
+
+def plain(text: str) -> str:
+    """RST markup a terminal shows literally (``code``, `refs`) as plain text."""
+    return re.sub(r"`{1,2}([^`]+)`{1,2}", r"\1", text)
+
+
+def first_sentence(doc: str) -> str:
+    """The first sentence of a docstring's first paragraph (lines joined), as plain text:
+    what ``nhjax list`` shows beside a name, never cut mid-sentence."""
+    para = " ".join(doc.strip().split("\n\n")[0].split())
+    m = re.search(r"\.(\s+(?=[A-Z(])|$)", para)
+    return plain(para[: m.start() + 1] if m else para)
 
 
 class UnknownExperiment(KeyError):
@@ -157,7 +171,7 @@ def run_experiment(name: str, args=(), workdir=None) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="nhjax", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="nhjax", description=plain(__doc__.splitlines()[0]))
     sub = parser.add_subparsers(dest="cmd", required=True)
     p_demo = sub.add_parser("demo", help="optimize the falling cat's somersault, then show it (numbers, figures)")
     p_demo.add_argument("--out", default="experiments/out", help="directory for figures and JSON")

@@ -125,3 +125,23 @@ def test_installed_cli_runs_an_experiment(installed):
     exact = [c for c in cols if "closed" in c.lower() or "exact" in c.lower()]
     assert sim and exact, cols
     np.testing.assert_allclose(rows[sim[0]], rows[exact[0]], rtol=0, atol=1e-6)
+
+
+def test_list_shows_each_experiment_in_one_whole_plain_sentence(capsys):
+    from nhjax.cli import first_sentence, main
+
+    assert main(["list"]) == 0
+    out = capsys.readouterr().out
+    assert "`" not in out
+    lines = out.split("experiments (nhjax run <name>):")[1].strip().splitlines()
+    assert len(lines) >= 10
+    for line in lines:
+        assert line.rstrip().endswith("."), line  # a sentence, not a line of the docstring cut mid-way
+    # the first sentence of a paragraph spread over lines, with abbreviations and RST code
+    doc = "Ball in a cone (seed 002, Fig. 9.5): the path\nin ``(alpha, rho)``. Default: more.\n\nNext."
+    assert first_sentence(doc) == "Ball in a cone (seed 002, Fig. 9.5): the path in (alpha, rho)."
+
+
+def test_python_m_nhjax_is_the_command_line():
+    r = subprocess.run([sys.executable, "-m", "nhjax", "--help"], capture_output=True, text=True, check=True)
+    assert "{demo,list,run,bench}" in r.stdout and "`" not in r.stdout

@@ -1,0 +1,5 @@
+"""``python -m nhjax``: the ``nhjax`` command line (see ``nhjax.cli``)."""
+
+from .cli import main
+
+raise SystemExit(main())
