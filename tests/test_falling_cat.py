@@ -69,6 +69,15 @@ def test_from_dimensions():
     np.testing.assert_allclose([cat.l, cat.radius, cat.length], [L / 2, r, L], rtol=1e-12)
     with pytest.raises(ValueError, match="lam"):
         FallingCat(lam=-1.0)
+    # every cat model is built from the same cylinders, with the same parameters
+    from nhjax.scenes import FallingCatAttitudes, FallingCatKinematic, FallingCatLagrangian, FallingCatSmooth
+
+    for cls in (FallingCatKinematic, FallingCatSmooth, FallingCatLagrangian, FallingCatAttitudes):
+        other = cls.from_dimensions(mass=m, length=L, radius=r)
+        assert type(other) is cls
+        np.testing.assert_allclose([other.I1, other.lam, other.B, other.mass], [cat.I1, cat.lam, cat.B, m], rtol=0)
+    with pytest.raises(ValueError, match="radius"):
+        FallingCatSmooth.from_dimensions(radius=-0.1)
 
 
 class TwistAtFixedTheta(eqx.Module):

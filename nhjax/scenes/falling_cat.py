@@ -120,6 +120,21 @@ class _CatGeometry(eqx.Module):
 
     guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT}
 
+    @classmethod
+    def from_dimensions(cls, mass=1.0, length=1.0, radius=0.25, joint_offset=None, **kw):
+        """Solid cylinders of ``mass`` [kg], ``length`` and ``radius`` [m], joint at
+        distance ``joint_offset`` from each centre of mass (default length/2: end to end);
+        ``kw`` are the model's other settings. Every cat model has it."""
+        owner = f"{cls.__name__}.from_dimensions"
+        mass = V.positive("mass", mass, owner=owner, what="mass of each cylinder [kg]")
+        length = V.positive("length", length, owner=owner, what="length of each cylinder [m]")
+        radius = V.positive("radius", radius, owner=owner, what="radius of each cylinder [m]")
+        l = length / 2 if joint_offset is None else V.positive(  # noqa: E741
+            "joint_offset", joint_offset, owner=owner, what="joint to centre-of-mass distance [m]")
+        I1 = mass * (3 * radius**2 + length**2) / 12
+        I2 = mass * radius**2 / 2
+        return cls(I1=I1, lam=I2 / I1, B=mass * l**2 / I1, mass=mass, **kw)
+
     # --- geometry (6.6), connection (6.7), metric (7.3), curvature (7.13)
     def D(self, theta):
         s, c = jnp.sin(theta), jnp.cos(theta)
@@ -231,20 +246,6 @@ class FallingCat(_CatGeometry, AbstractSystem):
         self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCat", I1, lam, B, mass)
         self.equations = equations
         self.chart_eps = _chart_eps("FallingCat", chart_eps)
-
-    @classmethod
-    def from_dimensions(cls, mass=1.0, length=1.0, radius=0.25, joint_offset=None, **kw):
-        """Solid cylinders of ``mass`` [kg], ``length`` and ``radius`` [m], joint at
-        distance ``joint_offset`` from each centre of mass (default length/2: end to end)."""
-        owner = f"{cls.__name__}.from_dimensions"
-        mass = V.positive("mass", mass, owner=owner, what="mass of each cylinder [kg]")
-        length = V.positive("length", length, owner=owner, what="length of each cylinder [m]")
-        radius = V.positive("radius", radius, owner=owner, what="radius of each cylinder [m]")
-        l = length / 2 if joint_offset is None else V.positive(  # noqa: E741
-            "joint_offset", joint_offset, owner=owner, what="joint to centre-of-mass distance [m]")
-        I1 = mass * (3 * radius**2 + length**2) / 12
-        I2 = mass * radius**2 / 2
-        return cls(I1=I1, lam=I2 / I1, B=mass * l**2 / I1, mass=mass, **kw)
 
     def initial_state(self, theta, chi=0.0, psi=0.0, theta_dot=0.0, chi_dot=0.0):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
