@@ -150,7 +150,8 @@ def main():
         if not a.no_animation:
             plotting.somersault_animation(geo, ts, xs[:, :3], out / f"somersault_{name}.gif", frames=30)
     (out / "somersault_tasks.json").write_text(json.dumps(summaries, indent=2))
-    print(f"wrote {out}/somersault_{{chart,torque}}.{{png,gif}} and somersault_tasks.json")
+    kinds = "{png,gif}" if not a.no_animation else "png"
+    print(f"wrote {out}/somersault_{{chart,torque}}.{kinds} and somersault_tasks.json")
 
 
 if __name__ == "__main__":
