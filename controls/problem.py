@@ -35,6 +35,7 @@ import jax.tree_util as jtu
 import collections
 import contextlib
 import functools
+import sys
 
 import numpy as np
 
@@ -170,6 +171,18 @@ def as_problem_error():
         raise
 
 
+def _in_dask_worker() -> bool:
+    """Whether this code runs in a Dask worker (only asked if distributed is imported)."""
+    mod = sys.modules.get("distributed")
+    if mod is None:
+        return False
+    try:
+        mod.get_worker()
+    except (ValueError, AttributeError):
+        return False
+    return True
+
+
 class Progress:
     """One progress line (tqdm.auto: a text bar in terminals, a widget in notebooks) over
     a solve: the bar counts outer iterations (or Newton iterations), the postfix shows
@@ -177,16 +190,25 @@ class Progress:
     ``finish(converged)`` closes it: a converged solve ends a full (green) bar however
     few of the allowed iterations it took; an unconverged one stays short (red in
     notebooks). ``on=False``: every method does nothing; a string ``on`` is the bar's
-    label instead of ``desc``."""
+    label instead of ``desc``. ``on=True`` inside a Dask worker is off (the workers'
+    bars would all print on the client); a string ``on`` still shows there.
+
+    Until the first iteration reports, the postfix says that a first call compiles: the
+    solver's programs are traced and compiled (or loaded) before it can count anything."""
+
+    STARTING = "starting (the first call of a problem structure compiles its programs)"
 
     def __init__(self, on, total, desc):
         self.bar, self.steps = None, 0
         if isinstance(on, str):
             desc = on
+        elif on and _in_dask_worker():
+            on = False
         if on:
             from tqdm.auto import tqdm
 
             self.bar = tqdm(total=total, desc=desc, unit="it", leave=True, dynamic_ncols=True)
+            self.bar.set_postfix_str(self.STARTING)
 
     def inner(self, merit, gnorm, step):
         """One inner step (merit value, gradient norm, accepted step length or None)."""
@@ -209,6 +231,8 @@ class Progress:
         if self.bar is None:
             return
         notebook = hasattr(self.bar, "container")  # tqdm.notebook's widget
+        if self.bar.postfix and self.STARTING in self.bar.postfix:
+            self.bar.set_postfix_str("", refresh=False)  # nothing reported: no stale word
         if converged and self.bar.n < (self.bar.total or 0):
             self.bar.total = self.bar.n
             if notebook:  # the widget's maximum too

@@ -5,6 +5,7 @@ form); the compiled programs carry no host callbacks (so JAX's persistent cache 
 them); the progress line ends full when a solve converges and short when it does not."""
 
 import importlib
+import sys
 
 import equinox as eqx
 import jax
@@ -195,6 +196,34 @@ def test_progress_line_ends_full_when_converged(capsys, optimizer):
     assert not d.converged and "not converged" in last, last
     controls.solve_direct(ocp, param, progress=False, optimizer=optimizer)
     assert capsys.readouterr().err == ""
+
+
+def test_progress_line_says_it_is_starting_and_stays_off_in_dask_workers(monkeypatch):
+    """Before the first iteration (while the solver's programs compile) the line says so,
+    and the word goes with the first report, or at the end if nothing was reported. In a
+    Dask worker the default line is off (every worker's bar would print on the client);
+    an explicit label still shows."""
+    import types
+
+    from controls.problem import Progress
+
+    bar = Progress(True, 3, "t")
+    assert "compiles" in bar.bar.postfix
+    bar.update(cost=1.0)
+    assert "compiles" not in bar.bar.postfix and "cost" in bar.bar.postfix
+    bar.finish(True)
+    quiet = Progress(True, 1, "t")
+    quiet.finish(True)
+    assert not quiet.bar.postfix
+
+    def no_worker():
+        raise ValueError("No worker found")
+
+    monkeypatch.setitem(sys.modules, "distributed", types.SimpleNamespace(get_worker=no_worker))
+    assert Progress(True, 1, "t").bar is not None  # distributed imported, but not in a worker
+    monkeypatch.setitem(sys.modules, "distributed", types.SimpleNamespace(get_worker=lambda: object()))
+    assert Progress(True, 1, "t").bar is None
+    assert Progress("labelled", 1, "t").bar is not None
 
 
 _CHILD = """

@@ -610,9 +610,14 @@ def simulate_batch(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=B, desc="nhjax batch", unit="traj")
+        # nothing counts until the first chunk is back, which (for a new structure)
+        # includes tracing and compiling its program
+        bar.set_postfix_str("starting (the first call of a structure compiles its program)")
 
     def done(i):
         if bar is not None:
+            if bar.postfix:
+                bar.set_postfix_str("", refresh=False)
             bar.update(results[i][2])
 
     if len(devices) > 1:
