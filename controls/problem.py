@@ -43,6 +43,7 @@ import nhjax
 from nhjax import _programs
 from nhjax import _validate as V
 from nhjax.errors import NhjaxError, ProblemError
+from nhjax.integrate import progress as progress_meter
 from nhjax.lie import Euclidean
 from nhjax.mechanics import AbstractSystem
 
@@ -196,7 +197,7 @@ class Progress:
     Until the first iteration reports, the postfix says that a first call compiles: the
     solver's programs are traced and compiled (or loaded) before it can count anything."""
 
-    STARTING = "starting (the first call of a problem structure compiles its programs)"
+    STARTING = progress_meter.STARTING
 
     def __init__(self, on, total, desc):
         self.bar, self.steps = None, 0

@@ -62,6 +62,7 @@ from .._validate import (
 )
 from .. import _programs
 from ..errors import NhjaxError
+from . import progress as progress_meter
 from .lockstep import _lanes_last, lockstep_solve, vmap_lanes
 from .simulate import (
     Trajectory,
@@ -610,9 +611,7 @@ def simulate_batch(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=B, desc="nhjax batch", unit="traj")
-        # nothing counts until the first chunk is back, which (for a new structure)
-        # includes tracing and compiling its program
-        bar.set_postfix_str("starting (the first call of a structure compiles its program)")
+        bar.set_postfix_str(progress_meter.STARTING)  # until the first chunk is back
 
     def done(i):
         if bar is not None:

@@ -24,6 +24,11 @@ from jax.experimental import io_callback
 
 __all__ = ["SimulatedTimeMeter"]
 
+#: What a bar counting chunks or iterations says until its first count: for a new
+#: structure its programs are traced and compiled (or loaded) first (simulate_batch's
+#: bar and controls' solver lines).
+STARTING = "starting (the first call of a structure compiles its programs)"
+
 _BARS: dict = {}
 _LOCK = threading.Lock()
 _IDS = itertools.count()
