@@ -789,13 +789,18 @@ def member_failures(report, *, constraint_tol, project=False, n=None):
     for k, m in r["margins"].items():
         m = np.asarray(m[:B])
         checks.append((~(m > 0), lambda j, k=k: f"regularity condition '{k}' fails"))
-    out = []
+    return first_failures(checks, B)
+
+
+def first_failures(checks, B):
+    """[(member, what)] for every member that fails some check, with ``what(j)`` of the
+    first check it fails. ``checks``: [(mask over the B members, what)], the masks
+    computed for all members at once (numpy); ``what`` is called only for failing
+    members (the texts of a batch's reasons, or the errors of a single call)."""
     failing = np.zeros(B, bool)
     for mask, _ in checks:
         failing |= mask
-    for j in np.nonzero(failing)[0]:
-        out.append((int(j), next(why(j) for mask, why in checks if mask[j])))
-    return out
+    return [(int(j), next(what(j) for mask, what in checks if mask[j])) for j in np.nonzero(failing)[0]]
 
 
 # ------------------------------------------------------------------ times

@@ -303,6 +303,7 @@ EXEMPT = {
     "nhjax.Trajectory": "result container returned by simulate",
     "nhjax.BatchTrajectory": "result container returned by simulate_batch",
     "nhjax.ImpactTrajectory": "result container returned by simulate_impacts",
+    "nhjax.ImpactBatchTrajectory": "result container returned by simulate_impacts_batch",
     "nhjax.mechanics.affine_projector": "pure function of arrays (the seed's jump map; runs traced)",
     "nhjax.mechanics.contact_dynamics": "pure function of arrays (runs traced inside a solve)",
     "nhjax.mechanics.impact_velocities": "pure function of arrays (the seed's jump map; runs traced)",
