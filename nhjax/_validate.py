@@ -5,7 +5,10 @@ What is checked, and where
 --------------------------
 * Parameters (``real``, ``positive``, ``in_range``, ``integer``, ``choice``,
   ``vector``, ``inertia_tensor``, ``principal_moments``): finiteness, sign and
-  range, named by the argument the user passed (``mass must be positive, got 0``),
+  range, and for inertias physical realizability in one place (``inertias``,
+  ``moment_triangle``: positive (semi)definite, each principal moment at most the sum
+  of the other two; ``ball_moment``: 0 < J <= 2/3 m r^2; ``axisymmetric_moments``:
+  axial <= 2 x transverse, <= m r^2), named by the argument the user passed (``mass must be positive, got 0``),
   checked on concrete values (arrays: every element, so batched parameters are
   checked member by member). A parameter passed as a tracer (a system built inside
   jit/vmap/grad) cannot be inspected and passes; those systems are built from
@@ -318,7 +321,119 @@ def inertia_tensor(name, value, *, owner=""):
         raise ParameterError(
             f"{_where(owner)}{name} must be symmetric positive definite (eigenvalues {ev.tolist()}); "
             "every principal moment of a rigid body is > 0", name, value)
+    moment_triangle(name, ev, owner=owner)
     return jnp.asarray(arr, float)
+
+
+#: Relative slack of the realizability checks of inertias (rounding in moments computed
+#: from dimensions: a thin disk or plate sits exactly on the triangle inequality's edge).
+_REALIZABLE_RTOL = 1e-12
+
+
+def moment_triangle(name, moments, *, owner="", value=None):
+    """Principal moments (last axis: 3, any order; leading axes: members of a batch) of a
+    physical rigid body obey the triangle inequality: each is at most the sum of the
+    other two. (I_x = int (y^2 + z^2) dm <= int (x^2 + z^2) dm + int (x^2 + y^2) dm =
+    I_y + I_z, with equality for a lamina in the y-z plane.) ParameterError otherwise;
+    positivity is checked by the callers (``inertia_tensor``, ``principal_moments``,
+    ``inertias``)."""
+    ev = np.sort(np.asarray(moments, float), axis=-1)
+    bad = ev[..., 2] > (ev[..., 0] + ev[..., 1]) * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(np.atleast_1d(bad))[0]) if bad.ndim else ()
+        e = ev[i] if bad.ndim else ev
+        where = f" (member {i[0] if len(i) == 1 else i})" if bad.ndim else ""
+        raise ParameterError(
+            f"{_where(owner)}{name} is not the inertia of a rigid body{where}: its largest principal moment "
+            f"{e[2]:.6g} exceeds the sum {e[0] + e[1]:.6g} of the other two (principal moments {e.tolist()}); "
+            "every principal moment of a body is at most the sum of the other two (equality: a flat "
+            "lamina)", name, value if value is not None else moments)
+
+
+def inertias(name, value, *, owner="", allow_zero=False):
+    """Inertia tensors [kg m^2] of shape (..., 3, 3), every one checked at once (numpy):
+    finite, symmetric, positive definite (semidefinite with ``allow_zero``: a point mass
+    has zero inertia, a rod one zero moment) and obeying the triangle inequality of
+    principal moments (``moment_triangle``). Returns the array (tracers pass)."""
+    arr = _as_real(name, value, owner, "inertia tensors [kg m^2]")
+    if isinstance(arr, jax.core.Tracer):
+        return jnp.asarray(arr, float)
+    if arr.shape[-2:] != (3, 3):
+        raise ParameterError(f"{_where(owner)}{name} must hold 3x3 inertia tensors, got shape {arr.shape}",
+                             name, value)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(f"{_where(owner)}{name} contains NaN/inf; pass finite moments", name, value)
+    scale = max(float(np.abs(arr).max(initial=0.0)), 1e-300)
+    T = np.swapaxes(arr, -1, -2)
+    asym = np.abs(arr - T).max(axis=(-1, -2)) > 1e-12 * scale
+    if asym.any():
+        i = int(np.argmax(asym.reshape(-1)))
+        raise ParameterError(f"{_where(owner)}{name}[{i}] must be symmetric, got "
+                             f"{arr.reshape(-1, 3, 3)[i].tolist()}", name, value)
+    ev = np.linalg.eigvalsh(0.5 * (arr + T))
+    low = ev[..., 0] < -1e-12 * scale if allow_zero else ~(ev[..., 0] > 0)
+    if low.any():
+        i = int(np.argmax(low.reshape(-1)))
+        kind = "positive semidefinite (zero: a point mass)" if allow_zero else "positive definite"
+        raise ParameterError(f"{_where(owner)}{name}[{i}] must be {kind}, got principal moments "
+                             f"{ev.reshape(-1, 3)[i].tolist()}", name, value)
+    moment_triangle(name, ev, owner=owner, value=value)
+    return arr
+
+
+def ball_moment(name, J, m, r, *, owner="", what="moment of inertia about a diameter [kg m^2]", label=None,
+                names=("m", "r")):
+    """A ball's moment of inertia about a diameter: 0 < J <= 2/3 m r^2, the thin spherical
+    shell's (its mass as far out as a ball of radius r allows; a homogeneous ball has
+    2/5 m r^2). ``label``: how the message writes J when the user passed something else
+    (``name``, e.g. a radius of gyration k: "m k^2"). Element by element for batched
+    parameters; tracers pass."""
+    J = positive(name, J, owner=owner, what=what)
+    if is_traced(J, m, r):
+        return J
+    shell = 2.0 / 3.0 * np.asarray(m, float) * np.asarray(r, float) ** 2
+    bad = np.asarray(J) > shell * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        label = label or name
+        mr = f"2/3 {names[0]} {names[1]}^2"
+        raise ParameterError(
+            f"{_where(owner)}{label} = {_show(J)} exceeds a thin spherical shell's {mr} = {_show(shell)}: no "
+            f"ball of that mass and radius has it (a homogeneous ball has 2/5 {names[0]} {names[1]}^2); pass "
+            f"0 < {label} <= {mr}", name, J, names=(name,) + tuple(names))
+    return J
+
+
+def shell_moment(Is, ms, Rs, *, owner=""):
+    """A spherical shell's central moment Is [kg m^2]: 2/3 ms Rs^2 (a thin shell) when
+    None, else 0 < Is <= 2/3 ms Rs^2 (``ball_moment``)."""
+    return ball_moment("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, ms, Rs, owner=owner,
+                       what="central moment of inertia of the shell [kg m^2]", names=("ms", "Rs"))
+
+
+def axisymmetric_moments(axial, transverse, *, names=("J_a", "J_t"), owner="", mass=None, radius=None,
+                         mass_names=("m", "r")):
+    """An axisymmetric body's principal moments: the axial one at most twice the
+    transverse one (the triangle inequality of ``moment_triangle`` for (I_t, I_t, I_a);
+    equality: a thin disk) and, given the body's mass and radius, at most m r^2 (all the
+    mass on the rim). ``names``: the arguments as the user passed them (the error names
+    the axial one). Element by element; tracers pass."""
+    if is_traced(axial, transverse, mass, radius):
+        return
+    a, t = np.asarray(axial, float), np.asarray(transverse, float)
+    bad = a > 2 * t * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        raise ParameterError(
+            f"{_where(owner)}{names[0]} = {_show(axial)} exceeds twice {names[1]} = {_show(transverse)}: an "
+            "axisymmetric body's axial moment is at most twice its transverse one (the triangle inequality "
+            "of principal moments; a thin disk has equality)", names[0], axial, names=names)
+    if mass is not None and radius is not None:
+        rim = np.asarray(mass, float) * np.asarray(radius, float) ** 2
+        bad = a > rim * (1 + _REALIZABLE_RTOL)
+        if bad.any():
+            raise ParameterError(
+                f"{_where(owner)}{names[0]} = {_show(axial)} exceeds {mass_names[0]} {mass_names[1]}^2 = "
+                f"{_show(rim)}: a body within radius {mass_names[1]} of its axis has an axial moment of at most "
+                "that (all its mass on the rim)", names[0], axial, names=(names[0],) + tuple(mass_names))
 
 
 def principal_moments(name, value, *, owner="", diagonal_reason=""):
@@ -340,6 +455,7 @@ def principal_moments(name, value, *, owner="", diagonal_reason=""):
         raise ParameterError(
             f"{_where(owner)}{name} must be positive principal moments, got {arr.tolist()}; pass "
             "finite values > 0", name, value)
+    moment_triangle(name, arr, owner=owner, value=value)
     return jnp.asarray(arr, float)
 
 

@@ -57,11 +57,14 @@ class NhjaxError(Exception):
 class ParameterError(NhjaxError, ValueError):
     """A parameter is out of its range (sign, finiteness, shape, allowed values).
 
-    Attributes: ``name`` (the argument as the user passed it), ``value``.
+    Attributes: ``name`` (the argument as the user passed it), ``value``, ``names``
+    (every argument the failed condition relates, for a relation between several, e.g.
+    a ball's moment of inertia and its mass and radius: ("J", "m", "r"); else (name,)).
     """
 
-    def __init__(self, message: str, name: str = "", value=None):
+    def __init__(self, message: str, name: str = "", value=None, names=None):
         self.name, self.value = name, value
+        self.names = tuple(names) if names else (name,)
         super().__init__(message)
 
 

@@ -332,3 +332,52 @@ def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):
     assert bool(jnp.all(jnp.isnan(bad)))
     np.testing.assert_allclose(np.asarray(good), np.asarray(nhjax.simulate(cat, x0, 2.0, saveat=2).xs[-1]),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_physically_impossible_bodies_are_refused_at_the_edge_of_what_bodies_can_be():
+    """Issue 40: inertias a body cannot have. Each rule is met with equality by a body
+    that exists (accepted) and broken by one part in 1e9 beyond it (refused, naming every
+    argument of the relation)."""
+    from nhjax import mechanics
+    from nhjax.scenes import RollingDisk, RollingSphereWall, ShellWithSuslovHinge, SuslovBundle, ThreeCylinders
+
+    def refused(make, names, match):
+        with pytest.raises(E.ParameterError, match=match) as err:
+            make()
+        assert set(names) <= set(err.value.names), err.value.names
+        assert isinstance(err.value, ValueError)
+
+    m, r, over = 2.0, 0.5, 1 + 1e-9
+    shell = 2.0 / 3.0 * m * r**2  # a thin spherical shell: the largest J of a ball of mass m, radius r
+    BallOnPlatter(m=m, r=r, J=shell)
+    refused(lambda: BallOnPlatter(m=m, r=r, J=shell * over), ("J", "m", "r"), "thin spherical shell")
+    refused(lambda: nhjax.scenes.BallInCone(m=m, r=r, J=shell * over), ("J", "m", "r"), "2/3 m r\\^2")
+    RollingSphereWall(r=r, m=m, k=np.sqrt(2 / 3) * r)  # k: radius of gyration, J = m k^2
+    refused(lambda: RollingSphereWall(r=r, m=m, k=np.sqrt(2 / 3) * r * over), ("k", "m", "r"), "m k\\^2")
+    ShellWithSuslovHinge(ms=m, Rs=r, Is=shell)
+    refused(lambda: ShellWithTop(ms=m, Rs=r, Is=shell * over), ("Is", "ms", "Rs"), "2/3 ms Rs\\^2")
+    # a thin disk: axial moment exactly twice the transverse (cylinder_inertia at length -> 0)
+    I_t, I_a = mechanics.cylinder_inertia(m, 1e-300, r)
+    assert I_a == 2 * I_t
+    RollingDisk(m=m, r=r, J1=I_a, J2=I_t)
+    refused(lambda: RollingDisk(m=m, r=r, J1=I_a, J2=I_t / over), ("J1", "J2"), "at most twice")
+    RollingDisk(m=m, r=r, J1=m * r**2, J2=m * r**2 / 2)  # a ring: all the mass on the rim
+    refused(lambda: RollingDisk(m=m, r=r, J1=m * r**2 * over, J2=m * r**2), ("J1", "m", "r"), "rim")
+    refused(lambda: ThreeCylinders(J_a=2.0 * over, J_t=1.0, m=100.0), ("J_a", "J_t"), "at most twice")
+    refused(lambda: ThreeCylinders(J_l=1.0, J_lt=1.0, m_l=1.0, r1=1.0 / np.sqrt(over)), ("J_l", "m_l", "r1"), "rim")
+    refused(lambda: FallingCat(lam=2.0 * over), ("lam",), "at most twice")
+    FallingCat.from_dimensions(mass=1.0, length=1e-3, radius=0.5)  # a disk-like cylinder: lam -> 2
+    # triangle inequality of principal moments: a flat lamina sits on the edge
+    SuslovBundle(inertia=(1.0, 2.0, 3.0))
+    refused(lambda: SuslovBundle(inertia=(1.0, 2.0, 3.0 * over)), ("inertia",), "exceeds the sum")
+    refused(lambda: ShellWithSuslovHinge(inertia=(1e-3, 2e-3, 3e-3 * over)), ("inertia",), "exceeds the sum")
+    R = np.asarray(so3.exp(jnp.array([0.3, -0.5, 0.2])))
+    refused(lambda: ShellWithTop(It=R @ np.diag([0.01, 0.01, 0.02 * over]) @ R.T), ("It",), "exceeds the sum")
+    # batched bodies: every member checked at once, the member named
+    Is = np.stack([np.diag([1.0, 2.0, 3.0])] * 5)
+    mechanics.RigidBody(jnp.ones(5), jnp.asarray(Is))
+    Is[3] = np.diag([1.0, 1.0, 2.5])
+    refused(lambda: mechanics.RigidBody(jnp.ones(5), jnp.asarray(Is)), ("inertia",), "member 3")
+    refused(lambda: mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.5])])), ("inertias",),
+            "exceeds the sum")
+    mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.0])]))  # a rod: (0, I, I)

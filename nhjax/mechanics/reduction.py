@@ -340,15 +340,7 @@ def _check_inertias(J, given):
             raise ParameterError(f"Bodies: inertias must be non-negative [kg m^2], got {J.tolist()}",
                                  "inertias", given)
         return
-    scale = max(float(np.abs(J).max()), 1e-300)
-    for i, Ji in enumerate(J):
-        if not np.allclose(Ji, Ji.T, rtol=0.0, atol=1e-12 * scale):
-            raise ParameterError(f"Bodies: inertias[{i}] must be symmetric, got {Ji.tolist()}", "inertias", given)
-        ev = np.linalg.eigvalsh(0.5 * (Ji + Ji.T))
-        if ev[0] < -1e-12 * scale:
-            raise ParameterError(
-                f"Bodies: inertias[{i}] must be positive semidefinite (a rigid body, or zero for a point "
-                f"mass), got principal moments {ev.tolist()}", "inertias", given)
+    V.inertias("inertias", J, owner="Bodies", allow_zero=True)
 
 
 class Bodies(eqx.Module):

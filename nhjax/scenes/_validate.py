@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from .._validate import (  # noqa: F401
     GROUP_TOL,
+    axisymmetric_moments,
+    ball_moment,
     choice,
     function,
     in_range,

@@ -92,7 +92,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real, unit_quaternion
+from ._validate import ball_moment, in_range, positive, real, unit_quaternion
 from .ball_on_platter import UP_STATE_NAMES, baumgarte_gains
 
 __all__ = ["BallInCone"]
@@ -126,10 +126,10 @@ def _vec(a):
 
 def cone_parameters(owner, m, r, J, gamma, g):
     """The checked parameters (m, r, J, gamma, g) of a ball in a cone (both models)."""
+    m = positive("m", m, owner=owner, what="mass [kg]")
+    r = positive("r", r, owner=owner, what="radius [m]")
     return (
-        positive("m", m, owner=owner, what="mass [kg]"),
-        positive("r", r, owner=owner, what="radius [m]"),
-        positive("J", J, owner=owner, what="moment of inertia about a diameter [kg m^2]"),
+        m, r, ball_moment("J", J, m, r, owner=owner),
         in_range("gamma", gamma, 0.0, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
                  what="half opening angle of the cone, between axis and generator [rad]"),
         positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]"),

@@ -99,9 +99,14 @@ _WHAT = {
 
 
 def _cat_parameters(owner, I1, lam, B, mass):
-    """(I1, lam, B, mass) as float arrays, each finite and positive (named as passed)."""
-    return tuple(V.positive(name, v, owner=owner, what=_WHAT[name])
-                 for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)))
+    """(I1, lam, B, mass) as float arrays, each finite and positive (named as passed), with
+    lam = I2 / I1 <= 2 (an axisymmetric body's axial moment is at most twice its
+    transverse one)."""
+    out = tuple(V.positive(name, v, owner=owner, what=_WHAT[name])
+                for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)))
+    V.axisymmetric_moments(out[1], 1.0, names=("lam", "1 (lam = I2/I1, the axial over the transverse moment)"),
+                           owner=owner)
+    return out
 
 
 def _chart_eps(owner, chart_eps):

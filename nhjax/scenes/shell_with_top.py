@@ -203,8 +203,7 @@ def _shell_and_top(owner, ms, Rs, Is, mt, It, c, g):
     """The shell's and the top's parameters, checked (shared by the models here)."""
     ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
     Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
-    Is = V.positive("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, owner=owner,
-                    what="central moment of inertia of the shell [kg m^2]")
+    Is = V.shell_moment(Is, ms, Rs, owner=owner)
     mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
     It = V.inertia_tensor("It", It, owner=owner)
     c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")

@@ -67,7 +67,7 @@ import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.impacts import oscillation_resolution
-from ._validate import in_range, positive, real
+from ._validate import ball_moment, in_range, positive, real
 
 __all__ = ["RollingSphereWall"]
 
@@ -97,6 +97,8 @@ class RollingSphereWall(ConstrainedLagrangian):
         k = np.sqrt(2 / 5) * r if k is None else k
         positive("k", k)
         positive("m", m)
+        ball_moment("k", np.asarray(m, float) * np.asarray(k, float) ** 2, m, r, owner="RollingSphereWall",
+                    label="m k^2", what="radius of gyration k [m]: moment m k^2 about a diameter")
         in_range("restitution", restitution, 0.0, 1.0, owner="RollingSphereWall", what="coefficient of restitution")
         real("f0", f0, owner="RollingSphereWall")
         real("V", V, owner="RollingSphereWall")

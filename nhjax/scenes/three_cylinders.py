@@ -93,7 +93,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real
+from ._validate import axisymmetric_moments, in_range, positive, real
 from .ball_on_platter import UP_STATE_NAMES, baumgarte_gains
 
 __all__ = ["ThreeCylinders", "ThreeCylindersMinimal"]
@@ -114,6 +114,15 @@ E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
 
 
 def _params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps):
+    p = _positive_params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps)
+    axisymmetric_moments(p["J_a"], p["J_t"], names=("J_a", "J_t"), owner=owner, mass=p["m"], radius=p["r2"],
+                         mass_names=("m", "r2"))
+    axisymmetric_moments(p["J_l"], p["J_lt"], names=("J_l", "J_lt"), owner=owner, mass=p["m_l"], radius=p["r1"],
+                         mass_names=("m_l", "r1"))
+    return p
+
+
+def _positive_params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps):
     return dict(
         r1=positive("r1", r1, owner=owner, what="radius of the lower cylinders [m]"),
         r2=positive("r2", r2, owner=owner, what="radius of the upper cylinder [m]"),
