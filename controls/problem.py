@@ -41,7 +41,7 @@ import numpy as np
 import nhjax
 from nhjax import _programs
 from nhjax import _validate as V
-from nhjax.errors import NhjaxError, ProblemError
+from nhjax.errors import NhjaxError, OutsideChartError, ProblemError
 from nhjax.lie import Euclidean
 from nhjax.mechanics import AbstractSystem
 
@@ -154,6 +154,12 @@ def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
     call.jitted = jitted
     call.prepare = prepare
     return call
+
+
+class OutsideChartProblem(OutsideChartError, ProblemError):
+    """An optimal-control problem whose start lies outside its system's chart: the
+    ``OutsideChartError`` that ``simulate`` raises for the same start, and a
+    ``ProblemError`` (the one class controls' entry points raise)."""
 
 
 @contextlib.contextmanager
@@ -399,10 +405,8 @@ class OCP(eqx.Module):
                     f"{r:.3e} > 1e-8; start from a consistent state (the scene's initial_state, or "
                     "system.project(0.0, x0))")
         for name, g in guards.items():
-            if not float(g) > 0:
-                raise ProblemError(
-                    f"OCP: x0 is outside the chart of {type(self.system).__name__} (guard '{name}' = "
-                    f"{float(g):.3g} <= 0). " + self.system.guard_hints.get(name, ""))
+            if not float(g) > 0:  # the error simulate() raises for the same start
+                raise V.outside_chart(self.system, name, g, owner="OCP", name="x0", cls=OutsideChartProblem)
 
     def _check_shapes(self):
         # a structural question: answered once per structure (three traces of the model

@@ -45,10 +45,10 @@ import jax.tree_util as jtu
 import numpy as np
 
 from .errors import (
-    ChartSingularityError,
     ConstraintViolationError,
     ControlError,
     GroupMembershipError,
+    OutsideChartError,
     ParameterError,
     ProjectionError,
     RegularityError,
@@ -270,8 +270,8 @@ def integer(name, value, *, minimum=None, owner="", what=""):
 def choice(name, value, options, *, owner=""):
     """``value`` if it is one of ``options``."""
     try:
-        ok = value in options
-    except TypeError:
+        ok = bool(value in options)
+    except (TypeError, ValueError):  # unhashable, or an array (ambiguous truth value)
         ok = False
     if not ok:
         raise ParameterError(
@@ -830,16 +830,78 @@ def raise_for_report(report, system, *, x0=None, constraint_tol=1e-8, project=Fa
         if float(res) > constraint_tol:
             raise constraint_failure(cname, float(res))
     for gname, g in r["guards"].items():
-        if g <= 0:
-            raise ChartSingularityError(
-                gname, float(t0), "the initial state is already outside the chart. "
-                + system.guard_hints.get(gname, ""))
+        if not g > 0:
+            raise outside_chart(system, gname, g, owner=owner, name=name, t0=t0)
     for cname, res in r["constraints"].items():  # NaN residuals (e.g. at a chart's edge): after the guards
         if not float(res) <= constraint_tol:
             raise constraint_failure(cname, float(res))
     for mname, margin in r["margins"].items():  # after the guards: outside a chart, say that first
         if not margin > 0:
             raise RegularityError(mname, float(margin), system.regularity_hints.get(mname, ""))
+
+
+def outside_chart(system, guard, value, *, owner="", name="x0", t0=0.0, cls=OutsideChartError):
+    """The error for a start outside ``system``'s chart (its guard ``guard`` at ``value``
+    <= 0), wherever it is found: ``OutsideChartError`` (or a subclass ``cls``) naming the
+    argument ``name`` that put the start there, with the scene's hint for that guard."""
+    return cls(
+        guard, float(t0), f"{_where(owner)}the start is already outside the chart of {type(system).__name__}: "
+        f"guard '{guard}' = {float(value):.3g} <= 0 (set by {name}). " + system.guard_hints.get(guard, ""),
+        name=name)
+
+
+def _guard_values(system, x):
+    return dict(system.guards(x))
+
+
+def start_in_chart(system, x, *, owner="", names=None):
+    """``x`` (a concrete state built from a user's arguments, e.g. by a scene's
+    ``initial_state``) if every chart guard of ``system`` is positive there, else the
+    ``OutsideChartError`` that ``simulate`` raises for the same numbers. ``names``: guard
+    -> the argument that sets it (default "the arguments"). One small stored program
+    (the guards); traced values pass (the solve's guard catches them)."""
+    from . import _programs
+    from .mechanics.system import AbstractSystem
+
+    if is_traced(system, x) or type(system).guards is AbstractSystem.guards:
+        return x
+    values = jax.device_get(_programs.call("chart-guards", _guard_values, (system, x),
+                                           compiler_options=_programs.QUICK_OPTIONS))
+    for g, v in values.items():
+        if not np.all(np.asarray(v) > 0):
+            raise outside_chart(system, g, np.min(v), owner=owner, name=(names or {}).get(g, "the arguments"))
+    return x
+
+
+_REFERENCE_SHAPES: dict = {}
+
+
+def single_member(system, *, owner=""):
+    """Refuse a system that holds a batch of parameter sets (an array parameter with a
+    leading member axis, e.g. built for ``simulate_batch`` by ``nhjax.stack``) where one
+    member is needed (a scene's ``initial_state``): ParameterError naming the field. A
+    field is batched when it has more axes than in the scene built with its defaults."""
+    cls = type(system)
+    if cls not in _REFERENCE_SHAPES:
+        try:
+            ref = cls()
+            _REFERENCE_SHAPES[cls] = (jtu.tree_structure(ref), [np.ndim(a) for a in jtu.tree_leaves(ref)])
+        except Exception:  # noqa: BLE001 - no defaults to compare with: nothing to check
+            _REFERENCE_SHAPES[cls] = None
+    ref = _REFERENCE_SHAPES[cls]
+    if ref is None or is_traced(system):
+        return
+    flat, treedef = jtu.tree_flatten_with_path(system)
+    if treedef != ref[0]:
+        return
+    for (path, leaf), nd in zip(flat, ref[1]):
+        if np.ndim(leaf) > nd:
+            field = _path_name("", path).lstrip(".")
+            raise ParameterError(
+                f"{_where(owner)}{cls.__name__} holds a batch of {np.shape(leaf)[0]} parameter sets ({field} has "
+                f"shape {np.shape(leaf)}), and a state is one member's: build the state with one member's "
+                f"{cls.__name__} (e.g. {cls.__name__}({field}=...) with a scalar), or vmap initial_state over "
+                "the members", field, leaf)
 
 
 def _group_space_of(system, part, name):

@@ -252,8 +252,9 @@ def test_ocp_refuses_bad_problems_at_construction():
         controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort, u_lower=jnp.nan, u_upper=1.0)
     with pytest.raises(controls.ProblemError, match="running_cost must be a callable"):
         controls.OCP(di, jnp.zeros(2), 1.0, running_cost=2.0)
-    with pytest.raises(controls.ProblemError, match="outside the chart"):
+    with pytest.raises(controls.ProblemError, match="outside the chart") as err:
         controls.OCP(FallingCatKinematic(), jnp.zeros(3), 1.0, running_cost=_effort)
+    assert isinstance(err.value, E.OutsideChartError) and err.value.guard == "sin_theta"
     ocp = controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort)
     with pytest.raises(controls.ProblemError, match=r"covers \[0, 0.5\] but the problem's horizon is \[0, 1\]"):
         controls.solve_direct(ocp, controls.PiecewiseLinear(4, 0.5, 1))
@@ -381,3 +382,39 @@ def test_physically_impossible_bodies_are_refused_at_the_edge_of_what_bodies_can
     refused(lambda: mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.5])])), ("inertias",),
             "exceeds the sum")
     mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.0])]))  # a rod: (0, I, I)
+
+
+def test_a_start_outside_the_chart_is_one_error_wherever_it_is_found():
+    """Issue 40: initial_state, simulate and an OCP refuse the same start with the same
+    error, OutsideChartError (a ValueError, and the ChartSingularityError a solve raises
+    at the chart's edge), naming the guard, its value and the argument; a scene that holds
+    a batch of parameter sets refuses to build one state by name."""
+    from nhjax.scenes import BallInCone, RollingDisk
+
+    cat = FallingCat(chart_eps=1e-3)
+    theta = 0.5e-3  # sin(theta) - chart_eps = -0.5e-3: just outside
+    x0 = jnp.array([theta, 0.0, 0.0, 0.0, 0.0])
+    errors = []
+    for call in (lambda: cat.initial_state(theta), lambda: nhjax.simulate(cat, x0, 1.0),
+                 lambda: nhjax.simulate(cat, x0, 1.0, on_guard="stop"),
+                 lambda: controls.OCP(FallingCatKinematic(chart_eps=1e-3), x0[:3], 1.0,
+                                      running_cost=lambda t, x, u: u @ u)):
+        with pytest.raises(E.OutsideChartError) as err:
+            call()
+        errors.append(err.value)
+    for e in errors:
+        assert isinstance(e, ValueError) and isinstance(e, E.ChartSingularityError) and e.t == 0.0
+        assert e.guard == "sin_theta" and "-0.0005 <= 0" in str(e) and "already outside the chart" in str(e)
+    assert [e.name for e in errors] == ["theta", "x0", "x0", "x0"]
+    cat.initial_state(1.5e-3)  # just inside: accepted
+    with pytest.raises(E.OutsideChartError, match="set by theta") as err:
+        RollingDisk().initial_state(theta=np.pi / 2 - 1e-4)
+    assert err.value.guard == "tilt"
+    with pytest.raises(E.OutsideChartError, match="rho = 0.5 puts the ball's centre") as err:
+        BallInCone().initial_state(rho=0.5)
+    assert err.value.name == "rho"
+    # one state is one member's: a batched parameter is named, not a numpy error
+    with pytest.raises(E.ParameterError, match="holds a batch of 2 parameter sets \\(lam has shape \\(2,\\)\\)"):
+        FallingCat(lam=np.array([0.3, 0.4])).initial_state(0.5)
+    with pytest.raises(E.ParameterError, match="gamma has shape"):
+        BallInCone(gamma=np.array([0.9, 1.0])).initial_state()

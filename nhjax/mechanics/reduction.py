@@ -517,6 +517,7 @@ class ReducedSystem(AbstractSystem):
     large_vector_field: ClassVar[bool] = True
     regularity_hints: ClassVar[dict] = _REG_HINTS
     guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT, "collinear": _LOCKED_HINT}
+    guard_arguments: ClassVar[dict] = {"locked_inertia": "shape", "collinear": "shape"}
 
     def __init__(self, bodies, shape_map, group, shape_dim, *, momentum=None, inputs=None,
                  control_dim=None, shape_names=None, chart_guard=None, guard_eps=1e-6):

@@ -124,6 +124,7 @@ class _CatGeometry(eqx.Module):
     chart_eps: float = eqx.field(static=True, default=1e-3)
 
     guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT}
+    guard_arguments: ClassVar[dict] = {"sin_theta": "theta"}
 
     # --- geometry (6.6), connection (6.7), metric (7.3), curvature (7.13)
     def D(self, theta):

@@ -149,6 +149,7 @@ class _DiskParams(eqx.Module):
     chart_eps: float = eqx.field(static=True, default=1e-3)
 
     guard_hints: ClassVar[dict] = {"tilt": _FLAT_HINT}
+    guard_arguments: ClassVar[dict] = {"tilt": "theta"}
 
     def _set(self, m, r, g, J1, J2, chart_eps):
         owner = type(self).__name__

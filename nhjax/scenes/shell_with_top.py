@@ -530,6 +530,7 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
         "ShellWithTopReduced, or restart from the equivalent rotation vector theta (1 - 2 pi/|theta|)"
         for k in ("shell rotation vector", "top rotation vector")
     }
+    guard_arguments: ClassVar[dict] = {"shell rotation vector": "attitude", "top rotation vector": "attitude"}
 
     state_names: ClassVar[tuple] = (
         "xc", "yc", "ths1", "ths2", "ths3", "tht1", "tht2", "tht3",

@@ -90,7 +90,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _programs
-from ..errors import ParameterError
+from ..errors import OutsideChartError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
 from ._validate import axisymmetric_moments, in_range, positive, real
@@ -152,6 +152,7 @@ class _Common(ConstrainedLagrangian):
     chart_eps: float = eqx.field(static=True, default=1e-3)
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"parallel": _PARALLEL_HINT}
+    guard_arguments: ClassVar[dict] = {"parallel": "theta"}
 
     def __init__(self, *args, **kwargs):  # the concrete scenes define their own
         raise TypeError("use ThreeCylinders or ThreeCylindersMinimal")
@@ -204,10 +205,10 @@ class _Common(ConstrainedLagrangian):
             th, a = float(vals[2]), float(self.a)
             margin = min(abs(np.sin(th)), abs(np.sin(th - a)))
             if not margin > self.chart_eps:
-                raise ParameterError(
-                    f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
+                raise OutsideChartError(
+                    "parallel", 0.0, f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
                     f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
-                    f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
+                    f"pick theta away from 0 and from a = {a:.6g} (mod pi)", name="theta")
         traced = any(isinstance(v, jax.core.Tracer) for v in vals)
         numbers = jnp.stack([jnp.asarray(v, float) for v in vals]) if traced else np.asarray(vals, float)
         return _programs.small_call(f"{type(self).__name__}.initial_state", _initial_from_numbers, self, numbers)
