@@ -331,14 +331,8 @@ class OCP(eqx.Module):
             if T.shape != ():
                 raise ProblemError(f"{owner}: the horizon T must be a scalar, got shape {T.shape}")
         else:
-            try:
-                T = float(np.asarray(T, float))
-            except (TypeError, ValueError):
-                raise ProblemError(f"{owner}: the horizon T must be a positive number of seconds, got {T!r}") from None
-            if not (np.isfinite(T) and T > 0):
-                raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
-                                   "duration of the motion in seconds")
-            T = host_array(T)
+            with as_problem_error():  # the rules simulate applies to its time span
+                T = host_array(V.duration("T", T, owner=owner))
         with as_problem_error():
             V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
             V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",
@@ -346,10 +340,8 @@ class OCP(eqx.Module):
             V.function("terminal_constraints", terminal_constraints, owner=owner,
                        signature="terminal_constraints(x) -> (m,)", optional=True)
         self.system = system
-        try:
-            self.x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
-        except (TypeError, ValueError) as e:
-            raise ProblemError(f"{owner}: x0 must be an array (or pytree of arrays) of real numbers: {e}") from None
+        with as_problem_error():  # the rules of simulate: a plain list is read as one array
+            self.x0 = V.as_state(system, x0, owner=owner)
         self.T = T
         self.running_cost = running_cost
         self.terminal_cost = terminal_cost

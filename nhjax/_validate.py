@@ -987,19 +987,7 @@ def time_span(t0, t1, *, owner="simulate", runtime=True):
     get the same words as a runtime error (``runtime=False``: not here; the caller joins
     ``time_span_check`` to its own runtime checks). Returns (t0, t1)."""
     for nm, t in (("t0", t0), ("t1", t1)):
-        if isinstance(t, jax.core.Tracer):
-            continue
-        if isinstance(t, (str, bytes)) or t is None:
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}")
-        try:
-            a = np.asarray(t, dtype=float)
-        except (TypeError, ValueError):
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}") from None
-        if a.shape != ():
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a scalar time, got shape {a.shape}")
-        if not np.isfinite(a):
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a finite time, got {_show(t)}; pass a finite "
-                                "end time (long horizons: a finite t1 with a step budget max_steps)")
+        _time_value(nm, t, owner)
     if not is_traced(t0, t1):
         if not float(t1) > float(t0):
             kind = "an empty time span" if float(t1) == float(t0) else "a reversed time span"
@@ -1010,6 +998,52 @@ def time_span(t0, t1, *, owner="simulate", runtime=True):
     if runtime:
         t1 = error_if(jnp.asarray(t1, float), *time_span_check(t0, t1, owner=owner))
     return t0, t1
+
+
+def _time_value(nm, t, owner, fix="pass a finite end time (long horizons: a finite t1 with a step budget "
+                                   "max_steps)"):
+    """A time [s] (concrete values): a finite real scalar, not a string (TimeSpanError)."""
+    if isinstance(t, jax.core.Tracer):
+        return
+    if isinstance(t, (str, bytes, bool)) or t is None:
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}")
+    try:
+        a = np.asarray(t, dtype=float)
+    except (TypeError, ValueError):
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}") from None
+    if a.shape != ():
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a scalar time, got shape {a.shape}")
+    if not np.isfinite(a):
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a finite time, got {_show(t)}; {fix}")
+
+
+def duration(name, T, *, owner=""):
+    """A horizon T [s] by the rules ``simulate`` applies to its time span: a finite real
+    scalar, not a string, > 0 (TimeSpanError). Returns a float (traced values: as given)."""
+    _time_value(name, T, owner, fix="pass the duration of the motion in seconds")
+    if isinstance(T, jax.core.Tracer):
+        return T
+    if not float(T) > 0:
+        raise TimeSpanError(f"{_where(owner)}{name} = {float(T)} must be positive: the horizon is the duration "
+                            "of the motion in seconds")
+    return float(T)
+
+
+def as_state(system, x0, *, owner="simulate", xp=jnp):
+    """``x0`` with every leaf a float array (``xp``: jax.numpy, or numpy for host-side
+    batches). A plain sequence (a list or tuple of numbers, nested for a batch) is read as
+    one array where the system's state is one array; StateError naming x0 when it holds
+    something that is not real numbers."""
+    flat_state = jtu.treedef_is_leaf(jtu.tree_structure(system.spaces, is_leaf=is_space))
+    names = tuple(getattr(system, "state_names", ()) or ())
+    what = f" {names}" if names else ""
+    try:
+        if flat_state and isinstance(x0, (list, tuple)):
+            x0 = np.asarray(x0, float)
+        return jtu.tree_map(lambda a: xp.asarray(a, dtype=float), x0)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"{_where(owner)}x0 must be an array of real numbers{what} (or a pytree of arrays for "
+                         f"{type(system).__name__}'s state): {e}", "x0") from None
 
 
 def time_span_check(t0, t1, *, owner="simulate"):

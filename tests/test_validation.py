@@ -240,7 +240,7 @@ def _effort(t, x, u):
 def test_ocp_refuses_bad_problems_at_construction():
     di = _DoubleIntegrator()
     for T in (np.inf, 0.0, -1.0, np.nan):
-        with pytest.raises(controls.ProblemError, match="horizon T must be positive and finite"):
+        with pytest.raises(controls.ProblemError, match="T (must be a finite time|= .* must be positive)"):
             controls.OCP(di, jnp.zeros(2), T, running_cost=_effort)
     with pytest.raises(controls.ProblemError, match="does not fit"):
         controls.OCP(di, jnp.zeros(3), 1.0, running_cost=_effort)
@@ -418,3 +418,47 @@ def test_a_start_outside_the_chart_is_one_error_wherever_it_is_found():
         FallingCat(lam=np.array([0.3, 0.4])).initial_state(0.5)
     with pytest.raises(E.ParameterError, match="gamma has shape"):
         BallInCone(gamma=np.array([0.9, 1.0])).initial_state()
+
+
+def test_control_parametrizations_and_horizons_follow_simulates_rules():
+    """Issue 40: parametrizations check n, T, dim on construction, T (and an OCP's
+    horizon) by the rules simulate applies to t1, with the same words; plain lists are
+    states wherever simulate takes one."""
+    for kind in (controls.Chebyshev, controls.Fourier, controls.PiecewiseConstant, controls.PiecewiseLinear,
+                 controls.CubicSpline):
+        with pytest.raises(controls.ProblemError, match=f"{kind.__name__}: n must be at least"):
+            kind(-3, 2.0, 2)
+        with pytest.raises(controls.ProblemError, match="T = -2.0 must be positive"):
+            kind(10, -2.0, 2)
+        with pytest.raises(controls.ProblemError, match="dim must be at least 1"):
+            kind(10, 2.0, 0)
+    controls.Chebyshev(0, 2.0, 1)  # degree 0: a constant control
+    with pytest.raises(E.TimeSpanError) as sim:
+        nhjax.simulate(FallingCat(), FallingCat().initial_state(0.6), "2.0")
+    words = str(sim.value).split("t1 ", 1)[1]  # "must be a time in seconds (a real number), got '2.0'"
+    for make in (lambda: controls.Chebyshev(10, "2.0", 2),
+                 lambda: controls.OCP(FallingCatKinematic(), [0.6, 0.0, 0.0], "2.0", running_cost=_effort)):
+        with pytest.raises(controls.ProblemError) as err:
+            make()
+        assert str(err.value).endswith("T " + words)
+    with pytest.raises(controls.ProblemError, match="T must be a finite time"):
+        controls.OCP(FallingCatKinematic(), [0.6, 0.0, 0.0], np.inf, running_cost=_effort)
+    cheb = controls.Chebyshev(3, 2.0, 2)
+    with pytest.raises(controls.ProblemError, match="u_fn\\(t\\) must return the 2 inputs, shape \\(2,\\), got \\(3,\\)"):
+        cheb.fit(lambda t: jnp.stack([t, t, t]))
+    # an exact fit: (t, t^2) on [0, 2] is 1 + s and 3/2 + 2 s + T_2(s) / 2 with s = t - 1
+    np.testing.assert_allclose(cheb.fit(lambda t: jnp.stack([t, t * t])).reshape(4, 2),
+                               [[1.0, 1.5], [1.0, 2.0], [0.0, 0.5], [0.0, 0.0]], atol=1e-13)
+    with pytest.raises(controls.ProblemError, match="takes 8 parameters, got shape \\(3,\\)"):
+        cheb.signal(np.zeros(3))
+    # a plain list is a state: the same numbers as the array; refused by name if not numbers
+    cat = FallingCatKinematic()
+    ocp = controls.OCP(cat, [0.6, 0.0, 0.0], 2.0, running_cost=_effort)
+    assert isinstance(ocp.x0, jax.Array) and ocp.x0.shape == (3,)
+    osc_list = nhjax.simulate(OSC, [1.0, 0.0], 1.0, saveat=2, rtol=1e-10, atol=1e-10)
+    osc_array = nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 1.0, saveat=2, rtol=1e-10, atol=1e-10)
+    np.testing.assert_array_equal(osc_list.xs, osc_array.xs)
+    np.testing.assert_allclose(osc_list.xs[-1, 0], np.cos(2.0), atol=1e-8)
+    with pytest.raises(E.StateError, match="x0 must be an array of real numbers") as err:
+        nhjax.simulate(OSC, [1.0, "a"], 1.0)
+    assert err.value.name == "x0"

@@ -48,6 +48,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from .._validate import (
+    as_state,
     check_control,
     check_memory,
     check_saveat,
@@ -526,7 +527,7 @@ def simulate_batch(
     for k, v in axes_d.items():
         if v not in (0, None):
             raise ValueError(f"in_axes['{k}'] must be 0 or None, got {v}")
-    x0 = jtu.tree_map(lambda a: np.asarray(a, float), x0)
+    x0 = as_state(system, x0, owner=owner, xp=np)
     axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
     B = _batch_size((system, x0, control), axes)
     if lanes is not None:
