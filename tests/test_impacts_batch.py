@@ -53,7 +53,9 @@ def test_each_lockstep_member_is_its_own_solve():
             assert int(one.num_steps) == steps[i]
         np.testing.assert_allclose(np.asarray(tr.impact_times[i][:k]), np.asarray(one.impact_times[:k]),
                                    rtol=0, atol=tol / 10, err_msg=f"member {i}")
-        for field in ("x_pre", "x_post", "impulses"):
+        assert int(one.num_events) == int(tr.num_events[i])
+        np.testing.assert_allclose(np.asarray(tr.event_times[i]), np.asarray(one.event_times), rtol=0, atol=tol / 10)
+        for field in ("x_pre", "x_post", "impulses", "event_states"):
             a, b_ = np.asarray(getattr(tr, field)[i][:k]), np.asarray(getattr(one, field)[:k])
             np.testing.assert_allclose(a, b_, rtol=0, atol=tol, err_msg=f"member {i}: {field}")
         assert np.all(np.isnan(np.asarray(tr.impact_times[i][k:])))  # nothing from a lane's previous member

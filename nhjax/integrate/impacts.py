@@ -43,7 +43,15 @@ Rules (documented behaviour)
   released where mu crosses zero (-``release_tol``).
 * Grazing: a crossing shallower than ``graze_tol`` (in psi's units) between
   samples is not an event; an event located with Psi >= 0 (tangential touch)
-  gives no impulse and is handled by the rest rule.
+  gives no impulse and is handled by the rest rule. A step that *ends* inside that
+  band (-graze_tol <= psi < 0) while the contact still approaches faster than
+  ``rest_velocity`` ended just past an impact: that is an event, located in the
+  step's last sample interval, so that every impact time is the root of the
+  computed flight whatever the step boundaries (a flight that is a multiple of the
+  largest step ends within round-off of its impact).
+* Contact events: every rest (a contact becoming persistent, at t0 or at an impact)
+  and release is a row of the event record (``event_times``, ``event_rest``,
+  ``event_release``, ``event_states``), 2 (max_impacts + 1) rows.
 * Simultaneous events: every bracketed contact whose e_a is within its
   tolerance at the root takes part (a multi-contact impact by the projector,
   contacts that would pull are dropped); later ones in the same step are
@@ -138,6 +146,12 @@ class ImpactTrajectory(eqx.Module):
     persistent (k,) : contacts persistent at the end; rest_times (k,): last time
         each became persistent (NaN: never); release_times (k,): last time each was
         released (NaN: never); num_releases.
+    event_times (M,), event_rest (M, k), event_release (M, k), event_states (M, 2n) :
+        every contact event (a contact coming to rest, at t0 or at an impact, or being
+        released) in order: its time, which contacts came to rest and which were
+        released, and the state just after it; M = 2 (max_impacts + 1) rows, NaN past
+        num_events (the count of all events; more than M only if contacts came to rest
+        without impacts, then the rows hold the first M).
     min_gap (k,) : smallest psi of free contacts at the accepted steps' ends
         (penetration, if negative).
     constraint_residual : max |A q' + a| at step ends (permanent constraints).
@@ -168,6 +182,11 @@ class ImpactTrajectory(eqx.Module):
     rest_times: jax.Array
     release_times: jax.Array
     num_releases: jax.Array
+    event_times: jax.Array
+    event_rest: jax.Array
+    event_release: jax.Array
+    event_states: jax.Array
+    num_events: jax.Array
     min_gap: jax.Array
     constraint_residual: jax.Array
     contact_residual: jax.Array
@@ -348,6 +367,19 @@ def _with_adjoint(adjoint, args, nz=None):
     return (*args[:-1], adjoint)
 
 
+def _event_capacity(max_impacts: int) -> int:
+    """Rows of the contact-event record: a contact comes to rest at an impact (or at t0)
+    and is released once per rest, so 2 (max_impacts + 1) rows hold every event of a
+    solve that stops at max_impacts."""
+    return 2 * int(max_impacts) + 2
+
+
+def _row(c, key):
+    """The record row an iteration writes for record key ``key``: impact rows ("imp_")
+    at ``rec_row``, contact-event rows ("ev_") at ``ev_row`` (out of range: none)."""
+    return c["ev_row"] if key.startswith("ev_") else c["rec_row"]
+
+
 def _ulp(t):
     t = jax.lax.stop_gradient(t)
     return jnp.spacing(jnp.abs(t)) + jnp.finfo(jnp.float64).tiny
@@ -386,6 +418,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     graze_tol = jnp.asarray(graze_tol, dtype)
     release_tol = jnp.asarray(release_tol, dtype)
     N = int(max_impacts)
+    M = _event_capacity(N)
     m = int(event_samples)
     if ts is None:
         ts = jnp.zeros((0,), dtype)
@@ -421,13 +454,16 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     order = solver.error_order(term)
 
     def records0():
-        """The impact record (rows written by ``record``; NaN past the last impact)."""
+        """The impact record (N rows, "imp_" keys, written at ``rec_row``) and the contact
+        event record (M rows, "ev_" keys, written at ``ev_row``): NaN past the last row."""
         nan = jnp.asarray(jnp.nan, dtype)
         return dict(
             imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
             imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
             imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
             imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
+            ev_t=jnp.full((M,), nan), ev_rest=jnp.zeros((M, k), bool), ev_release=jnp.zeros((M, k), bool),
+            ev_x=jnp.full((M, 2 * n), nan),
         )
 
     def init(x0):
@@ -449,7 +485,13 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
             persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
             n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
-            rec_row=jnp.asarray(N, jnp.int32), rec=jax.tree_util.tree_map(lambda a: a[0], records0()),
+            rec_row=jnp.asarray(N, jnp.int32),
+            # a start in resting contact is the first contact event (row 0, written after the
+            # first iteration, which keeps ev_row)
+            rec=dict(jax.tree_util.tree_map(lambda a: a[0], records0()), ev_t=t0, ev_rest=persistent0,
+                     ev_release=jnp.zeros(k, bool), ev_x=x0),
+            ev_row=jnp.where(jnp.any(persistent0), 0, M).astype(jnp.int32),
+            n_ev=jnp.any(persistent0).astype(jnp.int32),
             E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
             release_time=jnp.full((k,), nan),
             min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
@@ -547,9 +589,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         # N-row record stays out of the iteration's conditionals (under vmap, selects that
         # would copy it every iteration)
         out["rec_row"] = row.astype(jnp.int32)
+        rest_now = new_persistent & ~persistent
+        release_now = persistent & ~new_persistent
+        changed = jnp.any(rest_now | release_now)
         out["rec"] = dict(imp_t=t_star, imp_mask=hitting, imp_x_pre=x_star, imp_x_post=x_plus,
                           imp_Psi_pre=Psi, imp_Psi_post=Psi_post, imp_mu=mu_new, imp_E_pre=E_pre,
-                          imp_E_post=E_post)
+                          imp_E_post=E_post, ev_t=t_star, ev_rest=rest_now, ev_release=release_now, ev_x=x_plus)
+        out["ev_row"] = jnp.where(changed, c["n_ev"], M).astype(jnp.int32)  # M: dropped (none, or full)
+        out["n_ev"] = c["n_ev"] + changed.astype(jnp.int32)
         out["E_jumps"] = c["E_jumps"] + (E_post - E_pre)
         out["n_imp"] = c["n_imp"] + impact.astype(jnp.int32)
         out["n_rel"] = c["n_rel"] + jnp.sum(releasing).astype(jnp.int32)
@@ -565,7 +612,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         return out
 
     def body(c):
-        c = dict(c, rec_row=jnp.asarray(N, jnp.int32))
+        c = dict(c, rec_row=jnp.asarray(N, jnp.int32),
+                 ev_row=jnp.where(c["n_steps"] == 0, c["ev_row"], M).astype(jnp.int32))
         locate = c["phase"] == 1
         t = c["t"]
         persistent = c["persistent"]
@@ -599,6 +647,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         e_s = jnp.where(persistent[None, :], mus, gaps[1:])  # (m, k) event values
         tol = tolerances(persistent)
         below = e_s < -tol[None, :]
+        # A step that ends inside the graze band (-graze_tol <= psi < 0) of a contact still
+        # approaching (faster than rest_velocity) ended just past an impact: that is a
+        # crossing too, located in its last sample interval. Otherwise the next step would
+        # start past the root and the impact would be placed at that step's start, late by
+        # up to graze_tol / |Psi| (a flight that is a multiple of the largest step ends
+        # within round-off of its impact).
+        end_cross = ~persistent & (gaps[-1] < 0) & (rates[-1] < -rest_velocity)
+        below = below.at[-1].set(below[-1] | end_cross)
         any_j = jnp.any(below, axis=1)
         crossed = jnp.any(any_j)
         j = jnp.argmax(any_j)
@@ -729,8 +785,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         return (c["t"] < t1) & (c["status"] == 0) & (c["n_steps"] < max_steps)
 
     def record(records, c):
-        """Write the iteration's impact row (if any) into the record."""
-        return {key: records[key].at[c["rec_row"]].set(c["rec"][key], mode="drop") for key in records}
+        """Write the iteration's impact row and contact-event row (if any) into the records."""
+        return {key: records[key].at[_row(c, key)].set(c["rec"][key], mode="drop") for key in records}
 
     def finish_fields(c, x0):
         """The ``ImpactTrajectory`` fields other than the impact record."""
@@ -744,7 +800,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             t_final=c["t"], x_final=x_final, num_impacts=c["n_imp"],
             energy_jumps=c["E_jumps"], energy_error=energy_error,
             persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
-            num_releases=c["n_rel"],
+            num_releases=c["n_rel"], num_events=c["n_ev"],
             min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
             num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
             status=status,
@@ -756,7 +812,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             x_pre=records["imp_x_pre"], x_post=records["imp_x_post"],
             normal_velocity_pre=records["imp_Psi_pre"], normal_velocity_post=records["imp_Psi_post"],
             impulses=records["imp_mu"], energy_pre=records["imp_E_pre"], energy_post=records["imp_E_post"],
-            n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
+            event_times=records["ev_t"], event_rest=records["ev_rest"], event_release=records["ev_release"],
+            event_states=records["ev_x"], n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
         )
 
     return dict(init=init, body=body, cond=cond, records0=records0, record=record,
@@ -1135,7 +1192,7 @@ def _lockstep_chunk_impl(system, x0, t1, n_members, sys_axes, x_axis, options, l
         c, go = jax.vmap(body_lane, in_axes=(0, -1), out_axes=(-1, 0))(safe(st["mem"]), st["c"])
         dest = jnp.where(go & (st["mem"] < n_members), st["mem"], M)  # out of range: dropped
         rows = first(c["rec"])
-        rec = {key: rec[key].at[dest, c["rec_row"]].set(rows[key], mode="drop") for key in rec}
+        rec = {key: rec[key].at[dest, _row(c, key)].set(rows[key], mode="drop") for key in rec}
         return dict(st, c=c), rec
 
     def run_lanes(args):
