@@ -232,7 +232,7 @@ def test_reorientation_direct_and_pontryagin_agree():
     np.testing.assert_allclose(ind.trajectory.xs[-1, 0], turn, atol=1e-9)
 
 
-def test_reduction_helpers_name_bad_arguments(zero_momentum_chain):
+def test_reduction_helpers_name_bad_arguments(zero_momentum_chain, open_ellipse):
     """Issue 40: the geometry of a ReducedSystem with the wrong number of shape
     coordinates, a state of another system or NaN, and curvature_integral with an open
     path, a loop of the wrong size or NaN, are refused by name before any numerics."""
@@ -278,21 +278,9 @@ def test_reduction_helpers_name_bad_arguments(zero_momentum_chain):
     # a loop open by 1e-6 of its size fails the default closure_tol (1e-8) and passes a looser
     # one, with the integral of the closed ellipse to that order (one program for both)
     with pytest.raises(ParameterError, match="closure_tol = 1.0e-08"):
-        curvature_integral(kin, _OpenEllipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40)
-    closed = curvature_integral(kin, _OpenEllipse(c, *jnp.array([0.6, 0.9, 0.0])), c, n=40)
-    loose = curvature_integral(kin, _OpenEllipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40, closure_tol=1e-5)
+        curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40)
+    closed = curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.0])), c, n=40)
+    loose = curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40, closure_tol=1e-5)
     np.testing.assert_allclose(loose, closed, rtol=1e-5)
     assert abs(float(closed[0])) > 0.01
 
-
-class _OpenEllipse(eqx.Module):
-    """c + (a cos alpha + gap alpha / 2 pi, b sin alpha): an ellipse that ends ``gap`` away
-    from its start."""
-
-    c: jax.Array
-    a: jax.Array
-    b: jax.Array
-    gap: jax.Array
-
-    def __call__(self, alpha):
-        return self.c + jnp.stack([self.a * jnp.cos(alpha) + self.gap * alpha / (2 * np.pi), self.b * jnp.sin(alpha)])
