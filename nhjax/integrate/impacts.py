@@ -374,10 +374,21 @@ def _event_capacity(max_impacts: int) -> int:
     return 2 * int(max_impacts) + 2
 
 
-def _row(c, key):
-    """The record row an iteration writes for record key ``key``: impact rows ("imp_")
-    at ``rec_row``, contact-event rows ("ev_") at ``ev_row`` (out of range: none)."""
-    return c["ev_row"] if key.startswith("ev_") else c["rec_row"]
+def _write_rows(records, rows, c, lead=()):
+    """``records`` with the iteration's rows written: impact rows ("imp_" keys) at
+    ``c["rec_row"]``, contact-event rows ("ev_" keys) at ``c["ev_row"]`` (out of range:
+    none). ``lead``: leading indices (the lock-step batch's member slots). Contact events
+    are rare (a rest, a release): their rows are written in a branch taken only by an
+    iteration that has one, not scattered every iteration."""
+    out = {key: records[key].at[lead + (c["rec_row"],)].set(rows[key], mode="drop")
+           for key in records if not key.startswith("ev_")}
+    ev = {key: records[key] for key in records if key.startswith("ev_")}
+    capacity = ev["ev_t"].shape[len(lead)]
+
+    def write(ev):
+        return {key: ev[key].at[lead + (c["ev_row"],)].set(rows[key], mode="drop") for key in ev}
+
+    return out | jax.lax.cond(jnp.any(c["ev_row"] < capacity), write, lambda ev: ev, ev)
 
 
 def _ulp(t):
@@ -786,7 +797,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
 
     def record(records, c):
         """Write the iteration's impact row and contact-event row (if any) into the records."""
-        return {key: records[key].at[_row(c, key)].set(c["rec"][key], mode="drop") for key in records}
+        return _write_rows(records, c["rec"], c)
 
     def finish_fields(c, x0):
         """The ``ImpactTrajectory`` fields other than the impact record."""
@@ -1192,7 +1203,7 @@ def _lockstep_chunk_impl(system, x0, t1, n_members, sys_axes, x_axis, options, l
         c, go = jax.vmap(body_lane, in_axes=(0, -1), out_axes=(-1, 0))(safe(st["mem"]), st["c"])
         dest = jnp.where(go & (st["mem"] < n_members), st["mem"], M)  # out of range: dropped
         rows = first(c["rec"])
-        rec = {key: rec[key].at[dest, _row(c, key)].set(rows[key], mode="drop") for key in rec}
+        rec = _write_rows(rec, rows, c, lead=(dest,))
         return dict(st, c=c), rec
 
     def run_lanes(args):
