@@ -82,7 +82,8 @@ def test_period_one_orbit_impacts_are_roots_whatever_the_largest_step_divides():
     period tau, a multiple of the default largest step tau / 4: steps end within
     round-off of the impacts. Each of 60 impacts is the exact orbit's t* + k tau to
     1e-13 s, with the ball on the table to round-off (not inside it), for a largest step
-    that divides the flight and one that does not."""
+    that divides the flight, one that does not, and one whose event samples (4 per
+    step) fall on the impacts (tau / 5.5: 22 samples per flight)."""
     g, w, al, gam = 9.81, 2 * np.pi * 10, 0.5, 1.3
     tau, A = 2 * np.pi / w, gam * 9.81 / w**2
     b = BouncingBall(g=g, A=A, omega=w, restitution=al)
@@ -90,7 +91,7 @@ def test_period_one_orbit_impacts_are_roots_whatever_the_largest_step_divides():
     # law gives cos(w t*) = g tau (1 - alpha) / (2 (1 + alpha) A w); the stable branch
     t_star = np.arccos(g * tau * (1 - al) / (2 * (1 + al) * A * w)) / w
     x0 = jnp.array([A * np.sin(w * t_star), g * tau / 2])
-    for dtmax in (float(b.event_resolution), tau / 4.37):
+    for dtmax in (float(b.event_resolution), tau / 4.37, tau / 5.5):
         assert dtmax != float(b.event_resolution) or np.isclose(tau / dtmax, 4)
         tr = nhjax.simulate_impacts(b, x0, t_star + 60.5 * tau, t0=t_star, dtmax=dtmax, **OPTS)
         assert int(tr.num_impacts) == 60

@@ -9,7 +9,9 @@ diffrax's own) and is in one of two phases:
   functions are sampled on its dense output (``event_samples`` points, the
   last the step's end): for a free contact e_a = psi_a(t, q), for a persistent
   one e_a = mu_a (its compressive multiplier). The first sample where some e_a
-  < -tol brackets an event [s_{j-1}, s_j]; the step is then *not* taken and
+  < -tol brackets an event [s_i, s_j], s_i the last sample before it (or the
+  step's start) where the crossing gaps are still >= 0 (samples in between lie
+  in the graze band, already past the root); the step is then *not* taken and
   the loop switches to
 * **locating**: Newton's method on G(tau) = min_a e_a(tau, y(tau)) over the
   bracketed events, where y(tau) is a genuine Runge-Kutta step from the last
@@ -702,7 +704,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         t_min, gaps_min = jax.lax.cond(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
         dipped = has_dip & (gaps_min[a_d] < -tol[a_d])
         found = crossed | dipped
-        lo = jnp.where(dipped, s_all[i_d], jnp.where(j == 0, t, s[jnp.maximum(j - 1, 0)]))
+        # The bracket's left end: the last sample before the first one below -graze_tol at
+        # which the crossing gaps are still >= 0 (samples between lie inside the graze band,
+        # already past the root: a bracket starting there would put the root at its left
+        # end, late by up to graze_tol / |Psi|); for multipliers, the previous sample.
+        free_fire = below[j] & ~persistent
+        on_side = jnp.all(jnp.where(free_fire[None, :], gaps >= 0, True), axis=1)  # (m + 1,) over s_all
+        idx = jnp.arange(m + 1)
+        lo = jnp.where(dipped, s_all[i_d], s_all[jnp.max(jnp.where(on_side & (idx <= j), idx, 0))])
         hi = jnp.where(dipped, t_min, s[j])
         evset0 = jnp.where(dipped, (gaps_min < -tol) & ~persistent, below[j])
 
