@@ -844,33 +844,23 @@ def outside_chart(system, guard, value, *, owner="", name="x0", t0=0.0, cls=Outs
     """The error for a start outside ``system``'s chart (its guard ``guard`` at ``value``
     <= 0), wherever it is found: ``OutsideChartError`` (or a subclass ``cls``) naming the
     argument ``name`` that put the start there, with the scene's hint for that guard."""
+    arg = system.guard_arguments.get(guard)
+    via = f"; {arg} of {type(system).__name__}.initial_state sets it" if arg and arg != name else ""
     return cls(
         guard, float(t0), f"{_where(owner)}the start is already outside the chart of {type(system).__name__}: "
-        f"guard '{guard}' = {float(value):.3g} <= 0 (set by {name}). " + system.guard_hints.get(guard, ""),
+        f"guard '{guard}' = {float(value):.3g} <= 0 (set by {name}{via}). " + system.guard_hints.get(guard, ""),
         name=name)
 
 
-def _guard_values(system, x):
-    return dict(system.guards(x))
-
-
-def start_in_chart(system, x, *, owner="", names=None):
-    """``x`` (a concrete state built from a user's arguments, e.g. by a scene's
-    ``initial_state``) if every chart guard of ``system`` is positive there, else the
-    ``OutsideChartError`` that ``simulate`` raises for the same numbers. ``names``: guard
-    -> the argument that sets it (default "the arguments"). One small stored program
-    (the guards); traced values pass (the solve's guard catches them)."""
-    from . import _programs
-    from .mechanics.system import AbstractSystem
-
-    if is_traced(system, x) or type(system).guards is AbstractSystem.guards:
-        return x
-    values = jax.device_get(_programs.call("chart-guards", _guard_values, (system, x),
-                                           compiler_options=_programs.QUICK_OPTIONS))
-    for g, v in values.items():
-        if not np.all(np.asarray(v) > 0):
-            raise outside_chart(system, g, np.min(v), owner=owner, name=(names or {}).get(g, "the arguments"))
-    return x
+def chart_argument(system, guard, margin, *, owner="", name=""):
+    """A scene's own check, in ``initial_state``, of an argument that sets chart guard
+    ``guard``: ``margin`` (the guard's value for that argument, host-side numbers, no
+    program) must be > 0, else the ``OutsideChartError`` that ``simulate`` raises for the
+    state. Traced values pass (the solve's guard catches them)."""
+    if is_traced(margin):
+        return
+    if not np.all(np.asarray(margin, float) > 0):
+        raise outside_chart(system, guard, np.min(np.asarray(margin, float)), owner=owner, name=name)
 
 
 _REFERENCE_SHAPES: dict = {}
@@ -883,9 +873,9 @@ def single_member(system, *, owner=""):
     field is batched when it has more axes than in the scene built with its defaults."""
     cls = type(system)
     if cls not in _REFERENCE_SHAPES:
-        try:
-            ref = cls()
-            _REFERENCE_SHAPES[cls] = (jtu.tree_structure(ref), [np.ndim(a) for a in jtu.tree_leaves(ref)])
+        try:  # the default scene's structure, traced (nothing computed, nothing compiled)
+            ref = jax.eval_shape(cls)
+            _REFERENCE_SHAPES[cls] = (jtu.tree_structure(ref), [len(a.shape) for a in jtu.tree_leaves(ref)])
         except Exception:  # noqa: BLE001 - no defaults to compare with: nothing to check
             _REFERENCE_SHAPES[cls] = None
     ref = _REFERENCE_SHAPES[cls]

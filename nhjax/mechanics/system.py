@@ -23,11 +23,11 @@ make every simulation self-checking:
   posed (e.g. full-rank constraints), checked at x0.
 
 A subclass's ``initial_state`` (the helper that builds a state from physical
-quantities) is checked around its body (``_checked_initial_state``): a system
-holding a batch of parameter sets is refused by name (one state is one member's),
-and the state built is checked against the chart guards, so that a start outside
-the chart gets the ``OutsideChartError`` that ``simulate`` raises for it, naming
-the argument (``guard_arguments``: guard -> the argument that sets it).
+quantities) refuses by name a system that holds a batch of parameter sets (one
+state is one member's; ``_checked_initial_state``). A start outside the chart is
+``OutsideChartError`` wherever it is found: by a scene's own check of its
+arguments, by ``simulate`` (naming the argument that sets the guard, from
+``guard_arguments``), by an optimal-control problem.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ class AbstractSystem(eqx.Module):
     guard_hints: ClassVar[dict[str, str]] = {}
     # Explanation shown when a regularity margin of this name is not positive.
     regularity_hints: ClassVar[dict[str, str]] = {}
-    # The initial_state argument that sets each guard (named by OutsideChartError).
+    # The initial_state argument that sets each guard (OutsideChartError names it).
     guard_arguments: ClassVar[dict[str, str]] = {}
     # Large vector fields (e.g. autodiff-derived multibody dynamics) compile much faster
     # when a Runge-Kutta solver traces them once (stages in a lax.scan).
@@ -141,24 +141,22 @@ _DEPTH = threading.local()  # initial_state helpers calling another's (checked o
 
 
 def _checked_initial_state(fn):
-    """``fn`` (a subclass's ``initial_state``) with the checks of the module docstring
-    around it: before, the system holds one parameter set (``_validate.single_member``);
-    after, the state lies inside the chart (``_validate.start_in_chart``)."""
+    """``fn`` (a subclass's ``initial_state``) after the check of the module docstring:
+    the system holds one parameter set (``_validate.single_member``; host-side, no
+    program)."""
 
     @functools.wraps(fn)
     def initial_state(self, *args, **kwargs):
         depth = getattr(_DEPTH, "n", 0)
         if depth:
             return fn(self, *args, **kwargs)
-        from .._validate import single_member, start_in_chart
+        from .._validate import single_member
 
-        owner = f"{type(self).__name__}.initial_state"
-        single_member(self, owner=owner)
+        single_member(self, owner=f"{type(self).__name__}.initial_state")
         _DEPTH.n = depth + 1
         try:
-            x = fn(self, *args, **kwargs)
+            return fn(self, *args, **kwargs)
         finally:
             _DEPTH.n = depth
-        return start_in_chart(self, x, owner=owner, names=type(self).guard_arguments)
 
     return initial_state

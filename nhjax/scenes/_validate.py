@@ -7,6 +7,7 @@ from .._validate import (  # noqa: F401
     GROUP_TOL,
     axisymmetric_moments,
     ball_moment,
+    chart_argument,
     choice,
     function,
     in_range,

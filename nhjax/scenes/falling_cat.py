@@ -126,6 +126,12 @@ class _CatGeometry(eqx.Module):
     guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT}
     guard_arguments: ClassVar[dict] = {"sin_theta": "theta"}
 
+    def _theta_in_chart(self, theta, owner):
+        """theta inside the chart of the models with the guard sin(theta) > chart_eps."""
+        if "sin_theta" in type(self).guard_arguments and not V.is_traced(theta):
+            V.chart_argument(self, "sin_theta", np.sin(np.asarray(theta, float)) - self.chart_eps,
+                             owner=owner, name="theta")
+
     # --- geometry (6.6), connection (6.7), metric (7.3), curvature (7.13)
     def D(self, theta):
         s, c = jnp.sin(theta), jnp.cos(theta)
@@ -256,6 +262,7 @@ class FallingCat(_CatGeometry, AbstractSystem):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
                            chi_dot=chi_dot)
+        self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
         return jnp.stack(vals)
 
     def velocities(self, x):
@@ -368,7 +375,9 @@ class FallingCatKinematic(_CatGeometry, AbstractSystem):
 
     def initial_state(self, theta, chi=0.0, psi=0.0):
         """State (theta, chi, psi) [rad]."""
-        return jnp.stack(_state_args(type(self).__name__, theta=theta, chi=chi, psi=psi))
+        vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi)
+        self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
+        return jnp.stack(vals)
 
     def vector_field(self, t, x, u):
         return jnp.stack([u[0], u[1], -self.f(x[0]) * u[1]])
@@ -408,6 +417,8 @@ class FallingCatSmooth(_CatGeometry, AbstractSystem):
     state_names: ClassVar[tuple] = ("w1", "w2", "phi")
     control_dim: ClassVar[int] = 2
     requires_control: ClassVar[bool] = True
+
+    guard_arguments: ClassVar[dict] = {}  # smooth at theta = 0: no chart guard
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0):
         self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatSmooth", I1, lam, B, mass)
@@ -489,6 +500,7 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
         """((g1, g2, s)) from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         numbers = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
                               chi_dot=chi_dot)
+        self._theta_in_chart(numbers[0], f"{type(self).__name__}.initial_state")
         # concrete numbers: one compiled program instead of eager operations (small programs
         # compiled in every new process)
         return _programs.small_call("FallingCatAttitudes.initial_state", _attitudes_state, self, *numbers)

@@ -84,5 +84,8 @@ class FallingCatReduced(ReducedSystem):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         theta, chi, psi, theta_dot, chi_dot = _state_args(
             "FallingCatReduced", theta=theta, chi=chi, psi=psi, theta_dot=theta_dot, chi_dot=chi_dot)
+        if not V.is_traced(theta):
+            V.chart_argument(self, "sin_theta", np.sin(np.asarray(theta, float)) - self.chart_guard.eps,
+                             owner="FallingCatReduced.initial_state", name="theta")
         return ReducedSystem.initial_state(self, jnp.stack([theta, chi]), jnp.stack([theta_dot, chi_dot]),
                                            psi.reshape(1))

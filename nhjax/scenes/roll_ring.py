@@ -86,7 +86,7 @@ import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics._kkt import kkt_accelerations
-from ._validate import in_range, positive, real
+from ._validate import chart_argument, in_range, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollRing"]
@@ -258,7 +258,8 @@ class RollRing(ConstrainedLagrangian):
         vals = {k: jnp.asarray(real(k, v, owner=owner, as_float=True), float) for k, v in (
             ("u_r", u_r), ("beta", beta), ("u_s", u_s), ("alpha1", alpha1), ("alpha2", alpha2),
             ("beta_dot", beta_dot), ("u_s_dot", u_s_dot), ("alpha1_dot", alpha1_dot), ("alpha2_dot", alpha2_dot))}
-        b = vals["beta"]  # |beta| < pi/2 - ...: the chart guard 'tilt' (checked on the state built)
+        b = vals["beta"]
+        chart_argument(self, "tilt", np.cos(float(b)) - self.chart_eps, owner=owner, name="beta")
         a1, a2, s = vals["alpha1"], vals["alpha2"], vals["u_s"]
         a1d, a2d, sd = vals["alpha1_dot"], vals["alpha2_dot"], vals["u_s_dot"]
         e1, e2 = jnp.stack([jnp.sin(a1), -jnp.cos(a1)]), jnp.stack([jnp.sin(a2), -jnp.cos(a2)])

@@ -124,7 +124,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import axisymmetric_moments, in_range, positive, real
+from ._validate import chart_argument, axisymmetric_moments, in_range, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollingDisk", "RollingDiskQuaternion"]
@@ -238,6 +238,8 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
                                                      ("psi", psi), ("phi_dot", phi_dot),
                                                      ("theta_dot", theta_dot), ("psi_dot", psi_dot))]
         x1, x2, phi, th, psi, phid, thd, psid = vals
+        if not isinstance(th, jax.core.Tracer):
+            chart_argument(self, "tilt", np.cos(np.asarray(th, float)) - self.chart_eps, owner=owner, name="theta")
         return jnp.stack([
             x1, x2, phi, th, psi,
             self.r * psid * jnp.cos(phi), self.r * psid * jnp.sin(phi), phid, thd, psid,
