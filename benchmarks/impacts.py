@@ -195,7 +195,8 @@ def main():
         ball = BouncingBall(A=1.0, omega=2 * np.pi, restitution=0.8)
         balls = eqx.tree_at(lambda s: s.A, ball, jnp.asarray(gam * G / (2 * np.pi) ** 2))
         run = lambda: nhjax.simulate_impacts_batch(balls, jnp.array([0.05, 0.0]), 20.0,  # noqa: E731
-                                                   in_axes={"system": ["A"]}, max_impacts=200, lanes=lanes)
+                                                   in_axes={"system": ["A"]}, max_impacts=200, lanes=lanes,
+                                                   on_max_impacts="stop", on_error="return")
         t = time.perf_counter()
         out = run()
         first = time.perf_counter() - t
@@ -222,7 +223,7 @@ def main():
                           impacts_per_second=float(imps.sum() / sec), impact_time_error=err,
                           loop_iterations=dict(min=int(iters.min()), median=float(np.median(iters)),
                                                max=int(iters.max())),
-                          status_counts=np.bincount(np.asarray(out.status), minlength=5).tolist()))
+                          status_counts=np.bincount(np.asarray(out.status), minlength=6).tolist()))
         print(f"batch {B:5d} bouncers (Gamma in [1.5, 4], 20 table periods, {lanes} lanes per core): {sec:.2f} s -> "
               f"{B / sec:.0f} members/s, {imps.sum() / sec:.0f} impacts/s (first call {first:.1f} s); "
               f"impact-time error {err:.1e} s; loop iterations per member min/median/max "

@@ -31,9 +31,11 @@ import numpy as np
 from nhjax.integrate.signals import PiecewiseConstant as _PC
 from nhjax.integrate.signals import PiecewiseLinear as _PL
 
+from nhjax import _validate as V
 from nhjax._validate import is_traced
+from nhjax.errors import ProblemError
 
-from .problem import compiled, host_array
+from .problem import as_problem_error, compiled, host_array
 
 __all__ = ["Chebyshev", "CubicSpline", "Fourier", "Parametrization", "PiecewiseConstant", "PiecewiseLinear"]
 
@@ -55,10 +57,27 @@ def _knots(param):
 
 
 class Parametrization(eqx.Module):
+    """``Kind(n, T, dim, t0=0.0)``: n intervals (or the degree, for the spectral ones:
+    ``MIN_N`` is the least), horizon T [s] > 0 from t0 [s], dim inputs. Checked on
+    construction, T by the rules ``simulate`` applies to its time span (a finite real
+    number of seconds, not a string); ProblemError (controls' error class) otherwise."""
+
     n: int = eqx.field(static=True)
     T: jax.Array = eqx.field(converter=_horizon)
     dim: int = eqx.field(static=True)
     t0: float = eqx.field(static=True, default=0.0)
+
+    MIN_N = 1
+
+    def __init__(self, n, T, dim, t0=0.0):
+        owner = type(self).__name__
+        with as_problem_error():
+            self.n = V.integer("n", n, minimum=self.MIN_N, owner=owner,
+                               what="degree" if self.MIN_N == 0 else "number of intervals")
+            self.T = V.duration("T", T, owner=owner)
+            self.dim = V.integer("dim", dim, minimum=1, owner=owner, what="number of inputs")
+            self.t0 = V.real("t0", t0, owner=owner, shape=(), as_float=True, what="start of the horizon [s]") \
+                if not is_traced(t0) else t0
 
     @property
     def size(self) -> int:
@@ -68,7 +87,7 @@ class Parametrization(eqx.Module):
         raise NotImplementedError
 
     def param_bounds(self, u_lower, u_upper):
-        raise ValueError(
+        raise ProblemError(
             f"{type(self).__name__} cannot impose control bounds exactly; use "
             "PiecewiseConstant or PiecewiseLinear for a bounded control"
         )
@@ -79,15 +98,30 @@ class Parametrization(eqx.Module):
 
     def fit(self, u_fn):
         """Least-squares parameters whose signal best matches u_fn(t) (shape (dim,))."""
+        owner = f"{type(self).__name__}.fit"
+        with as_problem_error():
+            V.function("u_fn", u_fn, owner=owner, signature="u_fn(t) -> (dim,) inputs")
+        try:
+            out = jax.eval_shape(u_fn, jnp.zeros(()))
+        except Exception as e:  # noqa: BLE001 - the user's function: say what it is for
+            raise ProblemError(f"{owner}: u_fn(t) could not be evaluated on a scalar time t [s]: "
+                               f"{type(e).__name__}: {e}") from None
+        if getattr(out, "shape", None) != (self.dim,):
+            raise ProblemError(f"{owner}: u_fn(t) must return the {self.dim} inputs, shape ({self.dim},), got "
+                               f"{getattr(out, 'shape', type(out).__name__)}")
         ts = self.sample_times()
         return fit_samples(self, ts, jax.vmap(u_fn)(jnp.asarray(ts)))
 
     def _check(self, params):
         """``params`` of the right shape: a float64 numpy array when it has a value (the
         signals reshape it on the host and hand it over by ``_device``), else the tracer."""
-        params = jnp.asarray(params) if is_traced(params) else np.asarray(params, float)
+        if is_traced(params):
+            params = jnp.asarray(params)
+        else:
+            with as_problem_error():
+                params = np.asarray(V.real("params", params, owner=f"{type(self).__name__}.signal"))
         if params.shape != (self.size,):
-            raise ValueError(
+            raise ProblemError(
                 f"{type(self).__name__}(n={self.n}, dim={self.dim}) takes {self.size} "
                 f"parameters, got shape {params.shape}"
             )
@@ -195,6 +229,8 @@ class _FourierSignal(eqx.Module):
 
 
 class Fourier(Parametrization):
+    MIN_N = 0  # the degree: 0 is a constant control
+
     @property
     def size(self):
         return (2 * self.n + 1) * self.dim
@@ -220,6 +256,8 @@ class _ChebyshevSignal(eqx.Module):
 
 
 class Chebyshev(Parametrization):
+    MIN_N = 0  # the degree: 0 is a constant control
+
     @property
     def size(self):
         return (self.n + 1) * self.dim

@@ -42,7 +42,7 @@ import numpy as np
 import nhjax
 from nhjax import _programs
 from nhjax import _validate as V
-from nhjax.errors import NhjaxError, ProblemError
+from nhjax.errors import NhjaxError, OutsideChartError, ProblemError
 from nhjax.integrate import progress as progress_meter
 from nhjax.lie import Euclidean
 from nhjax.mechanics import AbstractSystem
@@ -156,6 +156,12 @@ def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
     call.jitted = jitted
     call.prepare = prepare
     return call
+
+
+class OutsideChartProblem(OutsideChartError, ProblemError):
+    """An optimal-control problem whose start lies outside its system's chart: the
+    ``OutsideChartError`` that ``simulate`` raises for the same start, and a
+    ``ProblemError`` (the one class controls' entry points raise)."""
 
 
 @contextlib.contextmanager
@@ -350,14 +356,8 @@ class OCP(eqx.Module):
             if T.shape != ():
                 raise ProblemError(f"{owner}: the horizon T must be a scalar, got shape {T.shape}")
         else:
-            try:
-                T = float(np.asarray(T, float))
-            except (TypeError, ValueError):
-                raise ProblemError(f"{owner}: the horizon T must be a positive number of seconds, got {T!r}") from None
-            if not (np.isfinite(T) and T > 0):
-                raise ProblemError(f"{owner}: the horizon T must be positive and finite, got {T}; pass the "
-                                   "duration of the motion in seconds")
-            T = host_array(T)
+            with as_problem_error():  # the rules simulate applies to its time span
+                T = host_array(V.duration("T", T, owner=owner))
         with as_problem_error():
             V.function("running_cost", running_cost, owner=owner, signature="running_cost(t, x, u) -> scalar")
             V.function("terminal_cost", terminal_cost, owner=owner, signature="terminal_cost(x) -> scalar",
@@ -365,10 +365,8 @@ class OCP(eqx.Module):
             V.function("terminal_constraints", terminal_constraints, owner=owner,
                        signature="terminal_constraints(x) -> (m,)", optional=True)
         self.system = system
-        try:
-            self.x0 = jtu.tree_map(lambda a: jnp.asarray(a, float), x0)
-        except (TypeError, ValueError) as e:
-            raise ProblemError(f"{owner}: x0 must be an array (or pytree of arrays) of real numbers: {e}") from None
+        with as_problem_error():  # the rules of simulate: a plain list is read as one array
+            self.x0 = V.as_state(system, x0, owner=owner)
         self.T = T
         self.running_cost = running_cost
         self.terminal_cost = terminal_cost
@@ -424,10 +422,8 @@ class OCP(eqx.Module):
                     f"{r:.3e} > 1e-8; start from a consistent state (the scene's initial_state, or "
                     "system.project(0.0, x0))")
         for name, g in guards.items():
-            if not float(g) > 0:
-                raise ProblemError(
-                    f"OCP: x0 is outside the chart of {type(self.system).__name__} (guard '{name}' = "
-                    f"{float(g):.3g} <= 0). " + self.system.guard_hints.get(name, ""))
+            if not float(g) > 0:  # the error simulate() raises for the same start
+                raise V.outside_chart(self.system, name, g, owner="OCP", name="x0", cls=OutsideChartProblem)
 
     def _check_shapes(self):
         # a structural question: answered once per structure (three traces of the model

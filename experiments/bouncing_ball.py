@@ -52,7 +52,8 @@ def bifurcation(members, alpha, transient=100, record=60, periods=150.0):
     x0 = jnp.array([1e-3, 0.0])
     t = time.perf_counter()
     tr = nhjax.simulate_impacts_batch(balls, x0, periods, in_axes={"system": ["A"]},
-                                      max_impacts=transient + record, rest_velocity=1e-4)
+                                      max_impacts=transient + record, rest_velocity=1e-4,
+                                      on_max_impacts="stop", on_error="return")
     wall = time.perf_counter() - t
     times = np.asarray(tr.impact_times)
     v = np.asarray(tr.velocities_post[..., 0])
@@ -63,7 +64,7 @@ def bifurcation(members, alpha, transient=100, record=60, periods=150.0):
         phase.append(np.mod(W * times[i, sl], 2 * np.pi) / (2 * np.pi))
         vel.append(v[i, sl] * W / G)
         gg.append(np.full(phase[-1].shape, gam[i]))
-    status = np.bincount(np.asarray(tr.status), minlength=5)
+    status = np.bincount(np.asarray(tr.status), minlength=6)
     return dict(gamma=np.concatenate(gg), phase=np.concatenate(phase), velocity=np.concatenate(vel),
                 wall=wall, status=status.tolist(), rested=int(np.sum(np.asarray(tr.persistent)[:, 0])),
                 steps_max=int(np.max(np.asarray(tr.num_steps))), steps_median=float(np.median(np.asarray(tr.num_steps))))

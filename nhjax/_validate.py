@@ -5,7 +5,10 @@ What is checked, and where
 --------------------------
 * Parameters (``real``, ``positive``, ``in_range``, ``integer``, ``choice``,
   ``vector``, ``inertia_tensor``, ``principal_moments``): finiteness, sign and
-  range, named by the argument the user passed (``mass must be positive, got 0``),
+  range, and for inertias physical realizability in one place (``inertias``,
+  ``moment_triangle``: positive (semi)definite, each principal moment at most the sum
+  of the other two; ``ball_moment``: 0 < J <= 2/3 m r^2; ``axisymmetric_moments``:
+  axial <= 2 x transverse, <= m r^2), named by the argument the user passed (``mass must be positive, got 0``),
   checked on concrete values (arrays: every element, so batched parameters are
   checked member by member). A parameter passed as a tracer (a system built inside
   jit/vmap/grad) cannot be inspected and passes; those systems are built from
@@ -42,10 +45,10 @@ import jax.tree_util as jtu
 import numpy as np
 
 from .errors import (
-    ChartSingularityError,
     ConstraintViolationError,
     ControlError,
     GroupMembershipError,
+    OutsideChartError,
     ParameterError,
     ProjectionError,
     RegularityError,
@@ -267,8 +270,8 @@ def integer(name, value, *, minimum=None, owner="", what=""):
 def choice(name, value, options, *, owner=""):
     """``value`` if it is one of ``options``."""
     try:
-        ok = value in options
-    except TypeError:
+        ok = bool(value in options)
+    except (TypeError, ValueError):  # unhashable, or an array (ambiguous truth value)
         ok = False
     if not ok:
         raise ParameterError(
@@ -318,7 +321,119 @@ def inertia_tensor(name, value, *, owner=""):
         raise ParameterError(
             f"{_where(owner)}{name} must be symmetric positive definite (eigenvalues {ev.tolist()}); "
             "every principal moment of a rigid body is > 0", name, value)
+    moment_triangle(name, ev, owner=owner)
     return jnp.asarray(arr, float)
+
+
+#: Relative slack of the realizability checks of inertias (rounding in moments computed
+#: from dimensions: a thin disk or plate sits exactly on the triangle inequality's edge).
+_REALIZABLE_RTOL = 1e-12
+
+
+def moment_triangle(name, moments, *, owner="", value=None):
+    """Principal moments (last axis: 3, any order; leading axes: members of a batch) of a
+    physical rigid body obey the triangle inequality: each is at most the sum of the
+    other two. (I_x = int (y^2 + z^2) dm <= int (x^2 + z^2) dm + int (x^2 + y^2) dm =
+    I_y + I_z, with equality for a lamina in the y-z plane.) ParameterError otherwise;
+    positivity is checked by the callers (``inertia_tensor``, ``principal_moments``,
+    ``inertias``)."""
+    ev = np.sort(np.asarray(moments, float), axis=-1)
+    bad = ev[..., 2] > (ev[..., 0] + ev[..., 1]) * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        i = tuple(int(k) for k in np.argwhere(np.atleast_1d(bad))[0]) if bad.ndim else ()
+        e = ev[i] if bad.ndim else ev
+        where = f" (member {i[0] if len(i) == 1 else i})" if bad.ndim else ""
+        raise ParameterError(
+            f"{_where(owner)}{name} is not the inertia of a rigid body{where}: its largest principal moment "
+            f"{e[2]:.6g} exceeds the sum {e[0] + e[1]:.6g} of the other two (principal moments {e.tolist()}); "
+            "every principal moment of a body is at most the sum of the other two (equality: a flat "
+            "lamina)", name, value if value is not None else moments)
+
+
+def inertias(name, value, *, owner="", allow_zero=False):
+    """Inertia tensors [kg m^2] of shape (..., 3, 3), every one checked at once (numpy):
+    finite, symmetric, positive definite (semidefinite with ``allow_zero``: a point mass
+    has zero inertia, a rod one zero moment) and obeying the triangle inequality of
+    principal moments (``moment_triangle``). Returns the array (tracers pass)."""
+    arr = _as_real(name, value, owner, "inertia tensors [kg m^2]")
+    if isinstance(arr, jax.core.Tracer):
+        return jnp.asarray(arr, float)
+    if arr.shape[-2:] != (3, 3):
+        raise ParameterError(f"{_where(owner)}{name} must hold 3x3 inertia tensors, got shape {arr.shape}",
+                             name, value)
+    if not np.all(np.isfinite(arr)):
+        raise ParameterError(f"{_where(owner)}{name} contains NaN/inf; pass finite moments", name, value)
+    scale = max(float(np.abs(arr).max(initial=0.0)), 1e-300)
+    T = np.swapaxes(arr, -1, -2)
+    asym = np.abs(arr - T).max(axis=(-1, -2)) > 1e-12 * scale
+    if asym.any():
+        i = int(np.argmax(asym.reshape(-1)))
+        raise ParameterError(f"{_where(owner)}{name}[{i}] must be symmetric, got "
+                             f"{arr.reshape(-1, 3, 3)[i].tolist()}", name, value)
+    ev = np.linalg.eigvalsh(0.5 * (arr + T))
+    low = ev[..., 0] < -1e-12 * scale if allow_zero else ~(ev[..., 0] > 0)
+    if low.any():
+        i = int(np.argmax(low.reshape(-1)))
+        kind = "positive semidefinite (zero: a point mass)" if allow_zero else "positive definite"
+        raise ParameterError(f"{_where(owner)}{name}[{i}] must be {kind}, got principal moments "
+                             f"{ev.reshape(-1, 3)[i].tolist()}", name, value)
+    moment_triangle(name, ev, owner=owner, value=value)
+    return arr
+
+
+def ball_moment(name, J, m, r, *, owner="", what="moment of inertia about a diameter [kg m^2]", label=None,
+                names=("m", "r")):
+    """A ball's moment of inertia about a diameter: 0 < J <= 2/3 m r^2, the thin spherical
+    shell's (its mass as far out as a ball of radius r allows; a homogeneous ball has
+    2/5 m r^2). ``label``: how the message writes J when the user passed something else
+    (``name``, e.g. a radius of gyration k: "m k^2"). Element by element for batched
+    parameters; tracers pass."""
+    J = positive(name, J, owner=owner, what=what)
+    if is_traced(J, m, r):
+        return J
+    shell = 2.0 / 3.0 * np.asarray(m, float) * np.asarray(r, float) ** 2
+    bad = np.asarray(J) > shell * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        label = label or name
+        mr = f"2/3 {names[0]} {names[1]}^2"
+        raise ParameterError(
+            f"{_where(owner)}{label} = {_show(J)} exceeds a thin spherical shell's {mr} = {_show(shell)}: no "
+            f"ball of that mass and radius has it (a homogeneous ball has 2/5 {names[0]} {names[1]}^2); pass "
+            f"0 < {label} <= {mr}", name, J, names=(name,) + tuple(names))
+    return J
+
+
+def shell_moment(Is, ms, Rs, *, owner=""):
+    """A spherical shell's central moment Is [kg m^2]: 2/3 ms Rs^2 (a thin shell) when
+    None, else 0 < Is <= 2/3 ms Rs^2 (``ball_moment``)."""
+    return ball_moment("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, ms, Rs, owner=owner,
+                       what="central moment of inertia of the shell [kg m^2]", names=("ms", "Rs"))
+
+
+def axisymmetric_moments(axial, transverse, *, names=("J_a", "J_t"), owner="", mass=None, radius=None,
+                         mass_names=("m", "r")):
+    """An axisymmetric body's principal moments: the axial one at most twice the
+    transverse one (the triangle inequality of ``moment_triangle`` for (I_t, I_t, I_a);
+    equality: a thin disk) and, given the body's mass and radius, at most m r^2 (all the
+    mass on the rim). ``names``: the arguments as the user passed them (the error names
+    the axial one). Element by element; tracers pass."""
+    if is_traced(axial, transverse, mass, radius):
+        return
+    a, t = np.asarray(axial, float), np.asarray(transverse, float)
+    bad = a > 2 * t * (1 + _REALIZABLE_RTOL)
+    if bad.any():
+        raise ParameterError(
+            f"{_where(owner)}{names[0]} = {_show(axial)} exceeds twice {names[1]} = {_show(transverse)}: an "
+            "axisymmetric body's axial moment is at most twice its transverse one (the triangle inequality "
+            "of principal moments; a thin disk has equality)", names[0], axial, names=names)
+    if mass is not None and radius is not None:
+        rim = np.asarray(mass, float) * np.asarray(radius, float) ** 2
+        bad = a > rim * (1 + _REALIZABLE_RTOL)
+        if bad.any():
+            raise ParameterError(
+                f"{_where(owner)}{names[0]} = {_show(axial)} exceeds {mass_names[0]} {mass_names[1]}^2 = "
+                f"{_show(rim)}: a body within radius {mass_names[1]} of its axis has an axial moment of at most "
+                "that (all its mass on the rim)", names[0], axial, names=(names[0],) + tuple(mass_names))
 
 
 def principal_moments(name, value, *, owner="", diagonal_reason=""):
@@ -340,6 +455,7 @@ def principal_moments(name, value, *, owner="", diagonal_reason=""):
         raise ParameterError(
             f"{_where(owner)}{name} must be positive principal moments, got {arr.tolist()}; pass "
             "finite values > 0", name, value)
+    moment_triangle(name, arr, owner=owner, value=value)
     return jnp.asarray(arr, float)
 
 
@@ -714,16 +830,68 @@ def raise_for_report(report, system, *, x0=None, constraint_tol=1e-8, project=Fa
         if float(res) > constraint_tol:
             raise constraint_failure(cname, float(res))
     for gname, g in r["guards"].items():
-        if g <= 0:
-            raise ChartSingularityError(
-                gname, float(t0), "the initial state is already outside the chart. "
-                + system.guard_hints.get(gname, ""))
+        if not g > 0:
+            raise outside_chart(system, gname, g, owner=owner, name=name, t0=t0)
     for cname, res in r["constraints"].items():  # NaN residuals (e.g. at a chart's edge): after the guards
         if not float(res) <= constraint_tol:
             raise constraint_failure(cname, float(res))
     for mname, margin in r["margins"].items():  # after the guards: outside a chart, say that first
         if not margin > 0:
             raise RegularityError(mname, float(margin), system.regularity_hints.get(mname, ""))
+
+
+def outside_chart(system, guard, value, *, owner="", name="x0", t0=0.0, cls=OutsideChartError):
+    """The error for a start outside ``system``'s chart (its guard ``guard`` at ``value``
+    <= 0), wherever it is found: ``OutsideChartError`` (or a subclass ``cls``) naming the
+    argument ``name`` that put the start there, with the scene's hint for that guard."""
+    arg = system.guard_arguments.get(guard)
+    via = f"; {arg} of {type(system).__name__}.initial_state sets it" if arg and arg != name else ""
+    return cls(
+        guard, float(t0), f"{_where(owner)}the start is already outside the chart of {type(system).__name__}: "
+        f"guard '{guard}' = {float(value):.3g} <= 0 (set by {name}{via}). " + system.guard_hints.get(guard, ""),
+        name=name)
+
+
+def chart_argument(system, guard, margin, *, owner="", name=""):
+    """A scene's own check, in ``initial_state``, of an argument that sets chart guard
+    ``guard``: ``margin`` (the guard's value for that argument, host-side numbers, no
+    program) must be > 0, else the ``OutsideChartError`` that ``simulate`` raises for the
+    state. Traced values pass (the solve's guard catches them)."""
+    if is_traced(margin):
+        return
+    if not np.all(np.asarray(margin, float) > 0):
+        raise outside_chart(system, guard, np.min(np.asarray(margin, float)), owner=owner, name=name)
+
+
+_REFERENCE_SHAPES: dict = {}
+
+
+def single_member(system, *, owner=""):
+    """Refuse a system that holds a batch of parameter sets (an array parameter with a
+    leading member axis, e.g. built for ``simulate_batch`` by ``nhjax.stack``) where one
+    member is needed (a scene's ``initial_state``): ParameterError naming the field. A
+    field is batched when it has more axes than in the scene built with its defaults."""
+    cls = type(system)
+    if cls not in _REFERENCE_SHAPES:
+        try:  # the default scene's structure, traced (nothing computed, nothing compiled)
+            ref = jax.eval_shape(cls)
+            _REFERENCE_SHAPES[cls] = (jtu.tree_structure(ref), [len(a.shape) for a in jtu.tree_leaves(ref)])
+        except Exception:  # noqa: BLE001 - no defaults to compare with: nothing to check
+            _REFERENCE_SHAPES[cls] = None
+    ref = _REFERENCE_SHAPES[cls]
+    if ref is None or is_traced(system):
+        return
+    flat, treedef = jtu.tree_flatten_with_path(system)
+    if treedef != ref[0]:
+        return
+    for (path, leaf), nd in zip(flat, ref[1]):
+        if np.ndim(leaf) > nd:
+            field = _path_name("", path).lstrip(".")
+            raise ParameterError(
+                f"{_where(owner)}{cls.__name__} holds a batch of {np.shape(leaf)[0]} parameter sets ({field} has "
+                f"shape {np.shape(leaf)}), and a state is one member's: build the state with one member's "
+                f"{cls.__name__} (e.g. {cls.__name__}({field}=...) with a scalar), or vmap initial_state over "
+                "the members", field, leaf)
 
 
 def _group_space_of(system, part, name):
@@ -789,13 +957,18 @@ def member_failures(report, *, constraint_tol, project=False, n=None):
     for k, m in r["margins"].items():
         m = np.asarray(m[:B])
         checks.append((~(m > 0), lambda j, k=k: f"regularity condition '{k}' fails"))
-    out = []
+    return first_failures(checks, B)
+
+
+def first_failures(checks, B):
+    """[(member, what)] for every member that fails some check, with ``what(j)`` of the
+    first check it fails. ``checks``: [(mask over the B members, what)], the masks
+    computed for all members at once (numpy); ``what`` is called only for failing
+    members (the texts of a batch's reasons, or the errors of a single call)."""
     failing = np.zeros(B, bool)
     for mask, _ in checks:
         failing |= mask
-    for j in np.nonzero(failing)[0]:
-        out.append((int(j), next(why(j) for mask, why in checks if mask[j])))
-    return out
+    return [(int(j), next(what(j) for mask, what in checks if mask[j])) for j in np.nonzero(failing)[0]]
 
 
 # ------------------------------------------------------------------ times
@@ -804,19 +977,7 @@ def time_span(t0, t1, *, owner="simulate", runtime=True):
     get the same words as a runtime error (``runtime=False``: not here; the caller joins
     ``time_span_check`` to its own runtime checks). Returns (t0, t1)."""
     for nm, t in (("t0", t0), ("t1", t1)):
-        if isinstance(t, jax.core.Tracer):
-            continue
-        if isinstance(t, (str, bytes)) or t is None:
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}")
-        try:
-            a = np.asarray(t, dtype=float)
-        except (TypeError, ValueError):
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}") from None
-        if a.shape != ():
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a scalar time, got shape {a.shape}")
-        if not np.isfinite(a):
-            raise TimeSpanError(f"{_where(owner)}{nm} must be a finite time, got {_show(t)}; pass a finite "
-                                "end time (long horizons: a finite t1 with a step budget max_steps)")
+        _time_value(nm, t, owner)
     if not is_traced(t0, t1):
         if not float(t1) > float(t0):
             kind = "an empty time span" if float(t1) == float(t0) else "a reversed time span"
@@ -827,6 +988,52 @@ def time_span(t0, t1, *, owner="simulate", runtime=True):
     if runtime:
         t1 = error_if(jnp.asarray(t1, float), *time_span_check(t0, t1, owner=owner))
     return t0, t1
+
+
+def _time_value(nm, t, owner, fix="pass a finite end time (long horizons: a finite t1 with a step budget "
+                                   "max_steps)"):
+    """A time [s] (concrete values): a finite real scalar, not a string (TimeSpanError)."""
+    if isinstance(t, jax.core.Tracer):
+        return
+    if isinstance(t, (str, bytes, bool)) or t is None:
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}")
+    try:
+        a = np.asarray(t, dtype=float)
+    except (TypeError, ValueError):
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a time in seconds (a real number), got {t!r}") from None
+    if a.shape != ():
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a scalar time, got shape {a.shape}")
+    if not np.isfinite(a):
+        raise TimeSpanError(f"{_where(owner)}{nm} must be a finite time, got {_show(t)}; {fix}")
+
+
+def duration(name, T, *, owner=""):
+    """A horizon T [s] by the rules ``simulate`` applies to its time span: a finite real
+    scalar, not a string, > 0 (TimeSpanError). Returns a float (traced values: as given)."""
+    _time_value(name, T, owner, fix="pass the duration of the motion in seconds")
+    if isinstance(T, jax.core.Tracer):
+        return T
+    if not float(T) > 0:
+        raise TimeSpanError(f"{_where(owner)}{name} = {float(T)} must be positive: the horizon is the duration "
+                            "of the motion in seconds")
+    return float(T)
+
+
+def as_state(system, x0, *, owner="simulate", xp=jnp):
+    """``x0`` with every leaf a float array (``xp``: jax.numpy, or numpy for host-side
+    batches). A plain sequence (a list or tuple of numbers, nested for a batch) is read as
+    one array where the system's state is one array; StateError naming x0 when it holds
+    something that is not real numbers."""
+    flat_state = jtu.treedef_is_leaf(jtu.tree_structure(system.spaces, is_leaf=is_space))
+    names = tuple(getattr(system, "state_names", ()) or ())
+    what = f" {names}" if names else ""
+    try:
+        if flat_state and isinstance(x0, (list, tuple)):
+            x0 = np.asarray(x0, float)
+        return jtu.tree_map(lambda a: xp.asarray(a, dtype=float), x0)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"{_where(owner)}x0 must be an array of real numbers{what} (or a pytree of arrays for "
+                         f"{type(system).__name__}'s state): {e}", "x0") from None
 
 
 def time_span_check(t0, t1, *, owner="simulate"):

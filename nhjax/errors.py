@@ -16,6 +16,12 @@ errors with the same words, without the values):
   unit quaternion, SE(2) pose) off its group beyond the tolerance;
 * ``ConstraintViolationError``: an initial state off its constraint manifold;
   ``ProjectionError``: ``project=True`` could not bring it onto the manifold;
+* ``OutsideChartError``: a start outside the coordinate chart a scene is written in,
+  wherever it is found (a scene's ``initial_state``, ``simulate``, a batch, an
+  optimal-control problem); it is a ``ChartSingularityError`` too, the error a solve
+  raises when the motion reaches the chart's edge later;
+* ``BoundaryError``: a moving boundary (a wall, a circle) that degenerates within the
+  time span (a circle's radius reaching 0);
 * ``ControlError``: a control missing, not callable, of the wrong shape or NaN;
 * ``TimeSpanError``: t0, t1 or the saved times empty, reversed or not finite;
 * ``ResourceError``: a request whose memory would exceed what is available;
@@ -26,12 +32,14 @@ errors with the same words, without the values):
 from __future__ import annotations
 
 __all__ = [
+    "BoundaryError",
     "ChartSingularityError",
     "ConstraintViolationError",
     "ControlError",
     "GroupMembershipError",
     "IntegrationError",
     "NhjaxError",
+    "OutsideChartError",
     "ParameterError",
     "ProblemError",
     "ProjectionError",
@@ -49,11 +57,14 @@ class NhjaxError(Exception):
 class ParameterError(NhjaxError, ValueError):
     """A parameter is out of its range (sign, finiteness, shape, allowed values).
 
-    Attributes: ``name`` (the argument as the user passed it), ``value``.
+    Attributes: ``name`` (the argument as the user passed it), ``value``, ``names``
+    (every argument the failed condition relates, for a relation between several, e.g.
+    a ball's moment of inertia and its mass and radius: ("J", "m", "r"); else (name,)).
     """
 
-    def __init__(self, message: str, name: str = "", value=None):
+    def __init__(self, message: str, name: str = "", value=None, names=None):
         self.name, self.value = name, value
+        self.names = tuple(names) if names else (name,)
         super().__init__(message)
 
 
@@ -164,6 +175,35 @@ class ChartSingularityError(IntegrationError):
         super().__init__(
             f"chart singularity ('{guard}' reached its limit)", t, detail, trajectory
         )
+
+
+class OutsideChartError(ChartSingularityError, ValueError):
+    """A start (an initial state, or the arguments a scene's ``initial_state`` builds one
+    from) lies outside the coordinate chart of the scene: on or beyond the edge where a
+    chart guard vanishes. Bad input, so a ``ValueError``; also a
+    ``ChartSingularityError`` (the same guard, reached at the start instead of during the
+    motion), so one ``except`` clause catches both.
+
+    Attributes as ChartSingularityError (``guard``, ``t``) plus ``name``: the argument
+    that put the start there ("x0", "theta", "rho", ...).
+    """
+
+    def __init__(self, guard: str, t: float, detail: str = "", name: str = "x0"):
+        self.name = name
+        super().__init__(guard, t, detail)
+
+
+class BoundaryError(NhjaxError, ValueError):
+    """A moving boundary of an impact system degenerates within the time span (a moving
+    circle's radius reaching zero): no motion is defined past that time.
+
+    Attributes: ``boundary`` (its name, e.g. "radius"), ``t`` (the first time found at
+    which its margin is <= 0), ``value`` (the margin there).
+    """
+
+    def __init__(self, message: str, boundary: str, t: float, value: float):
+        self.boundary, self.t, self.value = boundary, float(t), float(value)
+        super().__init__(message)
 
 
 class RegularityError(NhjaxError, ValueError):

@@ -90,7 +90,7 @@ def test_integrals_and_return_to_the_same_height():
 
 def test_no_axis_crossing_and_bad_input():
     ball = BallInCone()
-    with pytest.raises(E.ParameterError, match="rho"):
+    with pytest.raises(E.OutsideChartError, match="rho"):  # outside the chart, as simulate would say
         ball.initial_state(rho=0.5)  # centre across the axis: rho must exceed r cot(gamma) = 0.642
     for bad in (0.0, np.pi / 2, -0.1, np.nan):
         with pytest.raises(E.ParameterError, match="gamma"):

@@ -57,9 +57,10 @@ def test_same_accelerations_as_the_up_model(rng):
 
 def test_bad_input():
     be = BallInConeEuler()
-    with pytest.raises(E.ParameterError, match="theta"):
+    with pytest.raises(E.OutsideChartError, match="theta") as err:  # outside the chart: as simulate says
         be.initial_state(theta=0.0)
-    with pytest.raises(E.ParameterError, match="rho"):
+    assert err.value.guard == "gimbal" and err.value.name == "theta"
+    with pytest.raises(E.OutsideChartError, match="rho"):
         be.initial_state(rho=0.5)
     with pytest.raises(E.ParameterError, match="gamma"):
         BallInConeEuler(gamma=2.0)

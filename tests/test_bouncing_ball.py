@@ -76,6 +76,56 @@ def test_gamma_below_one_chatters_to_rest_and_rides_the_table():
     assert float(tr.contact_residual) < 1e-12
 
 
+def test_period_one_orbit_impacts_are_roots_whatever_the_largest_step_divides():
+    """Issue 40: on the contracting period-1 orbit (alpha = 0.5, Gamma = 1.3 between the
+    thresholds pi (1 - alpha)/(1 + alpha) and its flip bound) the flight takes one table
+    period tau, a multiple of the default largest step tau / 4: steps end within
+    round-off of the impacts. Each of 60 impacts is the exact orbit's t* + k tau to
+    1e-13 s, with the ball on the table to round-off (not inside it), for a largest step
+    that divides the flight, one that does not, and one whose event samples (4 per
+    step) fall on the impacts (tau / 5.5: 22 samples per flight)."""
+    g, w, al, gam = 9.81, 2 * np.pi * 10, 0.5, 1.3
+    tau, A = 2 * np.pi / w, gam * 9.81 / w**2
+    b = BouncingBall(g=g, A=A, omega=w, restitution=al)
+    # departure velocity g tau / 2 (a flight of one period), approach -g tau / 2: the rebound
+    # law gives cos(w t*) = g tau (1 - alpha) / (2 (1 + alpha) A w); the stable branch
+    t_star = np.arccos(g * tau * (1 - al) / (2 * (1 + al) * A * w)) / w
+    x0 = jnp.array([A * np.sin(w * t_star), g * tau / 2])
+    for dtmax in (float(b.event_resolution), tau / 4.37, tau / 5.5):
+        assert dtmax != float(b.event_resolution) or np.isclose(tau / dtmax, 4)
+        tr = nhjax.simulate_impacts(b, x0, t_star + 60.5 * tau, t0=t_star, dtmax=dtmax, **OPTS)
+        assert int(tr.num_impacts) == 60
+        t = np.asarray(tr.impact_times[:60])
+        assert np.max(np.abs(t - (t_star + tau * np.arange(1, 61)))) <= 1e-13
+        gap = np.asarray(tr.x_pre[:60, 0]) - A * np.sin(w * t)
+        assert np.max(np.abs(gap)) < 1e-15
+        np.testing.assert_allclose(np.asarray(tr.velocities_post[:60, 0]), g * tau / 2, rtol=1e-12)
+
+
+def test_every_rest_and_release_is_recorded():
+    """Gamma = 1.3: the ball chatters to rest once per table period and is released where
+    the table's acceleration passes -g, at sin(w t) = 1/Gamma (rising): every rest and
+    release is a row of the event record, in order, alternating, each release at its
+    closed-form time with the table's state."""
+    w = 2 * np.pi
+    b = BouncingBall(g=9.81, A=1.3 * 9.81 / w**2, omega=w, restitution=0.5)
+    tr = nhjax.simulate_impacts(b, b.initial_state(0.02, 0.0), 4.5, rest_velocity=1e-4, **OPTS)
+    m = int(tr.num_events)
+    t = np.asarray(tr.event_times[:m])
+    rest, rel = np.asarray(tr.event_rest[:m, 0]), np.asarray(tr.event_release[:m, 0])
+    assert np.all(rest ^ rel) and np.all(rest[0::2]) and np.all(rel[1::2])  # rest, release, rest, ...
+    assert int(rel.sum()) == int(tr.num_releases) >= 3 and np.all(np.diff(t) > 0)
+    assert np.isnan(np.asarray(tr.event_times[m:])).all()
+    t_rel = t[rel]
+    k = np.round(t_rel - np.arcsin(1 / 1.3) / w)
+    np.testing.assert_allclose(t_rel, (np.arcsin(1 / 1.3) + 2 * np.pi * k) / w, rtol=0, atol=1e-9)
+    x = np.asarray(tr.event_states[:m])
+    np.testing.assert_allclose(x[:, 0], np.asarray(b.table(t)), atol=1e-12)  # on the table at every event
+    np.testing.assert_allclose(x[:, 1], np.asarray(b.table_velocity(t)), atol=1e-9)  # moving with it
+    # the last of each kind is what rest_times / release_times report
+    assert float(tr.rest_times[0]) == t[rest][-1] and float(tr.release_times[0]) == t_rel[-1]
+
+
 def test_high_bounce_map_is_the_small_amplitude_limit():
     """The seed's map f(t, v) neglects the table's displacement: its orbit differs from
     the exact impacts by O(A). Tenfold smaller A, about tenfold smaller difference."""

@@ -100,7 +100,7 @@ class CircleLoop(eqx.Module):
         return self.rho * self.omega * jnp.stack([-jnp.sin(a), jnp.cos(a)])
 
 
-@pytest.mark.parametrize("lam", [0.05, 0.3, 1.0, 2.5])
+@pytest.mark.parametrize("lam", [0.05, 0.3, 1.0, 2.0])  # 2: a thin disk, the largest an axisymmetric body has
 def test_fixed_theta_holonomy_closed_form(lam):
     kin = FallingCatKinematic(lam=lam)
     for theta in (0.2, 0.9, 1.4):

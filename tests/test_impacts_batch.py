@@ -31,7 +31,7 @@ def test_each_lockstep_member_is_its_own_solve():
     ball, balls, gam, x0 = _members()
     # 2 chunks (members dealt in turn), 2 lanes each: the lanes are refilled from the queue
     tr = nhjax.simulate_impacts_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=2,
-                                      saveat=5, **OPTS)
+                                      saveat=5, on_max_impacts="stop", **OPTS)
     n = np.asarray(tr.num_impacts)
     steps = np.asarray(tr.num_steps)
     assert np.ptp(steps) > 100  # members of very different lengths
@@ -53,7 +53,9 @@ def test_each_lockstep_member_is_its_own_solve():
             assert int(one.num_steps) == steps[i]
         np.testing.assert_allclose(np.asarray(tr.impact_times[i][:k]), np.asarray(one.impact_times[:k]),
                                    rtol=0, atol=tol / 10, err_msg=f"member {i}")
-        for field in ("x_pre", "x_post", "impulses"):
+        assert int(one.num_events) == int(tr.num_events[i])
+        np.testing.assert_allclose(np.asarray(tr.event_times[i]), np.asarray(one.event_times), rtol=0, atol=tol / 10)
+        for field in ("x_pre", "x_post", "impulses", "event_states"):
             a, b_ = np.asarray(getattr(tr, field)[i][:k]), np.asarray(getattr(one, field)[:k])
             np.testing.assert_allclose(a, b_, rtol=0, atol=tol, err_msg=f"member {i}: {field}")
         assert np.all(np.isnan(np.asarray(tr.impact_times[i][k:])))  # nothing from a lane's previous member
@@ -71,6 +73,93 @@ def test_each_lockstep_member_is_its_own_solve():
     np.testing.assert_allclose(np.asarray(via.x_final), np.asarray(tr.x_final), rtol=0, atol=1e-10)
     with pytest.raises(TypeError, match="max_impacts"):  # impact options on a system without impacts
         nhjax.simulate_batch(nhjax.scenes.FallingCat(), x0, T1, max_impacts=3)
+
+    # the batch interface of simulate_batch: with on_max_impacts="stop" a member that reached
+    # max_impacts is stopped, not failed; without it (via) it failed, and says so
+    maxed = np.asarray(tr.status) == 1
+    assert maxed.any() and (~maxed).any()
+    np.testing.assert_array_equal(tr.stopped, maxed)
+    np.testing.assert_array_equal(tr.ok, np.asarray(tr.t_final) == T1)
+    np.testing.assert_array_equal(via.failed, maxed)
+    assert sorted(via.reasons) == np.flatnonzero(maxed).tolist()
+    assert all("max_impacts=40" in via.reasons[m] for m in via.reasons)
+    assert via.counts() == {"success": int((~maxed).sum()), "max_impacts": int(maxed.sum())}
+    assert f"{len(gam)} members: success {int((~maxed).sum())}" in via.summary()
+    # on_error="raise" (simulate_batch's default): the failed members, with the result
+    with pytest.raises(nhjax.BatchError) as err:
+        nhjax.simulate_batch(balls, x0, T1, in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=2, saveat=5,
+                             **OPTS)
+    assert err.value.members == np.flatnonzero(maxed).tolist()
+    np.testing.assert_array_equal(np.asarray(err.value.trajectory.num_impacts), n)
+
+    # A sweep with a member that starts below the table (inserted at index 3): it is not
+    # solved, its reason says why, and the other members are exactly the solves above (the
+    # same members in the same chunks and lanes)
+    A = np.insert(gam * G / W**2, 3, gam[0] * G / W**2)
+    bad_x0 = np.insert(x0, 3, [-0.01, 0.0], axis=0)
+    sweep = nhjax.simulate_impacts_batch(eqx.tree_at(lambda s: s.A, ball, jnp.asarray(A)), bad_x0, T1,
+                                         in_axes={"system": ["A"], "x0": 0}, lanes=2, workers=2, saveat=5,
+                                         on_max_impacts="stop", on_error="return", **OPTS)
+    assert sweep.status_names()[3] == "bad input" and sweep.failed.tolist() == [i == 3 for i in range(8)]
+    assert "forbidden side of unilateral[0] (psi = -0.01" in sweep.reasons[3]
+    assert float(sweep.t_final[3]) == 0.0 and int(sweep.num_impacts[3]) == 0
+    assert np.isnan(np.asarray(sweep.impact_times[3])).all() and np.isnan(np.asarray(sweep.x_final[3])).all()
+    keep = np.arange(8) != 3
+    for field in ("impact_times", "x_post", "x_final", "xs", "num_steps", "status"):
+        np.testing.assert_array_equal(np.asarray(getattr(sweep, field))[keep], np.asarray(getattr(tr, field)))
+
+
+def test_bad_members_are_refused_before_any_solve(monkeypatch):
+    """Each member gets the checks of simulate_impacts before anything is solved: a
+    restitution of 1.5 on one member, a start below the table, NaN; shared bad inputs get
+    the single call's own error; budgets and shapes are named."""
+    from nhjax.integrate import impacts
+
+    def no_solve(*a, **k):
+        raise AssertionError("a batch with bad members was solved")
+
+    monkeypatch.setattr(impacts, "_lockstep_chunk", no_solve)
+    ball, balls, gam, x0 = _members()
+    alpha = np.full(gam.size, 0.5)
+    alpha[2] = 1.5
+    x0 = x0.copy()
+    x0[4] = [-0.02, 0.0]
+    x0[5, 1] = np.nan
+    both = eqx.tree_at(lambda s: (s.A, s.restitution), ball, (jnp.asarray(gam * G / W**2), jnp.asarray(alpha)))
+    axes = {"system": ["A", "restitution"], "x0": 0}
+    with pytest.raises(nhjax.BatchError) as err:
+        nhjax.simulate_impacts_batch(both, x0, T1, in_axes=axes, **OPTS)
+    assert err.value.members == [2, 4, 5]
+    r = dict(zip(err.value.members, err.value.reasons))
+    assert "restitution[0] = 1.5 outside [0, 1]" in r[2]
+    assert "forbidden side of unilateral[0] (psi = -0.02" in r[4] and "NaN" in r[5]
+    # simulate_batch on an impact system: the same checks (and on_error="raise" is its default)
+    with pytest.raises(nhjax.BatchError, match="bad inputs in 3 member"):
+        nhjax.simulate_batch(both, x0, T1, in_axes=axes, **OPTS)
+    # shared inputs: the error simulate_impacts raises for the same numbers
+    shared = eqx.tree_at(lambda s: s.restitution, ball, jnp.asarray(1.5))
+    for call in (lambda: nhjax.simulate_impacts(shared, jnp.array([0.1, 0.0]), T1),
+                 lambda: nhjax.simulate_impacts_batch(shared, x0[:2], T1)):
+        with pytest.raises(ParameterError, match="restitution must lie in \\[0, 1\\]") as e:
+            call()
+        assert e.value.name == "restitution"
+    with pytest.raises(nhjax.BatchError) as err:  # a shared x0 below every member's table
+        nhjax.simulate_impacts_batch(balls, np.array([-0.02, 0.0]), T1, in_axes={"system": ["A"]})
+    assert err.value.members == list(range(gam.size))
+    with pytest.raises(ParameterError, match="max_impacts must be at least 1"):
+        nhjax.simulate_impacts_batch(ball, x0[:2], T1, max_impacts=0)
+    with pytest.raises(ParameterError, match="rest_velocity"):
+        nhjax.simulate_impacts_batch(ball, x0[:2], T1, rest_velocity=-1.0)
+    with pytest.raises(ParameterError, match="unknown option"):
+        nhjax.simulate_impacts_batch(ball, x0[:2], T1, max_imppacts=3)
+    for bad in (np.ones((3, 3)), np.ones(3), "x"):
+        with pytest.raises(nhjax.StateError, match="x0"):
+            nhjax.simulate_impacts_batch(ball, bad, T1)
+    # simulate_batch's default tolerances for impact systems are simulate_impacts' (1e-10)
+    seen = {}
+    monkeypatch.setattr(impacts, "simulate_impacts_batch", lambda *a, **k: seen.update(k))
+    nhjax.simulate_batch(ball, x0[:2], T1)
+    assert seen["rtol"] == seen["atol"] == 1e-10 and seen["on_error"] == "raise"
 
 
 def test_batch_sizes_must_agree():

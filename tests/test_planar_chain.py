@@ -230,3 +230,57 @@ def test_reorientation_direct_and_pontryagin_agree():
     assert abs(d.cost - ind.cost) / ind.cost < 1e-6
     assert ind.cost <= d.cost * (1 + 1e-9)  # the Chebyshev restriction can only cost more
     np.testing.assert_allclose(ind.trajectory.xs[-1, 0], turn, atol=1e-9)
+
+
+def test_reduction_helpers_name_bad_arguments(zero_momentum_chain, open_ellipse):
+    """Issue 40: the geometry of a ReducedSystem with the wrong number of shape
+    coordinates, a state of another system or NaN, and curvature_integral with an open
+    path, a loop of the wrong size or NaN, are refused by name before any numerics."""
+    from nhjax.errors import ParameterError, StateError
+    from nhjax.mechanics.reduction import EllipseLoop
+
+    ch = zero_momentum_chain  # k = 2 joint angles
+    x = ch.initial_state([0.3, -0.2], [0.1, 0.4])
+    for method in ("metric", "locked_inertia", "connection", "reduced_metric", "curvature", "rotational_inertia",
+                   "inertia_condition"):
+        for bad in (jnp.zeros(3), jnp.zeros(1), jnp.zeros((2, 2)), [0.1, "a"]):
+            with pytest.raises(ParameterError, match=f"PlanarChain.{method}: r must") as err:
+                getattr(ch, method)(bad)
+            assert err.value.name == "r"
+        with pytest.raises(ParameterError, match="NaN"):
+            getattr(ch, method)(jnp.array([0.1, np.nan]))
+    for method in ("group_velocity", "body_states", "momentum_map", "shape_accelerations"):
+        for bad in (x[:3], jnp.concatenate([x, x]), (jnp.eye(3), x)):
+            with pytest.raises(StateError, match=f"PlanarChain.{method}: x must be a state of PlanarChain"):
+                getattr(ch, method)(bad)
+        with pytest.raises(StateError, match="NaN"):
+            getattr(ch, method)(x.at[2].set(np.inf))
+    with pytest.raises(ParameterError, match="u must have shape \\(2,\\)"):
+        ch.shape_accelerations(x, jnp.zeros(3))
+    with pytest.raises(ParameterError, match="shape_acc must have shape"):
+        ch.inverse_dynamics(x, jnp.zeros(1))
+
+    kin = ch.kinematic()
+    c = jnp.array([1.0, 0.8])
+    with pytest.raises(ParameterError, match="does not close: \\|loop\\(2 pi\\) - loop\\(0\\)\\| = 6.28") as err:
+        curvature_integral(kin, lambda a: c + jnp.stack([a, 0.3 * jnp.sin(a)]), c)  # an open path
+    assert err.value.name == "loop"
+    with pytest.raises(ParameterError, match="shape \\(2,\\), got \\(3,\\)"):
+        curvature_integral(kin, lambda a: jnp.stack([a, a, a]), c)
+    with pytest.raises(ParameterError, match="centre must be finite"):
+        EllipseLoop([np.nan, 0.8], 0.1)
+    with pytest.raises(ParameterError, match="a must be positive"):
+        EllipseLoop(c, -0.1)
+    nan_loop = EllipseLoop(c, 0.1)
+    nan_loop = eqx.tree_at(lambda e: e.b, nan_loop, jnp.asarray(np.nan))  # past the constructor's check
+    with pytest.raises(ParameterError, match="not finite at alpha"):
+        curvature_integral(kin, nan_loop, c)
+    # a loop open by 1e-6 of its size fails the default closure_tol (1e-8) and passes a looser
+    # one, with the integral of the closed ellipse to that order (one program for both)
+    with pytest.raises(ParameterError, match="closure_tol = 1.0e-08"):
+        curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40)
+    closed = curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.0])), c, n=40)
+    loose = curvature_integral(kin, open_ellipse(c, *jnp.array([0.6, 0.9, 0.6e-6])), c, n=40, closure_tol=1e-5)
+    np.testing.assert_allclose(loose, closed, rtol=1e-5)
+    assert abs(float(closed[0])) > 0.01
+

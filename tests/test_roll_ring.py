@@ -73,7 +73,7 @@ def test_driven_transmission_balance_and_exact_tilt():
 
 
 def test_tilt_guard_and_bad_input():
-    with pytest.raises(E.ParameterError, match="beta"):
+    with pytest.raises(E.OutsideChartError, match="set by beta"):
         RollRing().initial_state(beta=2.0)
     with pytest.raises(E.ParameterError, match="m_r"):
         RollRing(m_r=0.0)

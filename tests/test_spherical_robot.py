@@ -12,8 +12,10 @@ from nhjax.scenes.spherical_robot import ShellWithTop
 
 
 def random_inertia(rng):
+    """A body's inertia in random axes: principal moments in [0.01, 0.02] kg m^2 (each at
+    most the sum of the other two, as every rigid body's)."""
     Q = np.asarray(so3.exp(jnp.asarray(rng.normal(size=3))))
-    return Q @ np.diag(rng.uniform(0.005, 0.02, 3)) @ Q.T
+    return Q @ np.diag(rng.uniform(0.01, 0.02, 3)) @ Q.T
 
 
 def test_centred_top_decouples(rng):
@@ -73,10 +75,11 @@ def test_internal_torque_work_and_momentum_balance(free_run):
     # Chaplygin's vector changes exactly by the torque on the shell: dK/dt = -Rt tau
     K = jax.vmap(lambda g0, g1, g2, v: rob.chaplygin_vector(((g0, g1, g2), v)))(*tr.xs[0], tr.xs[1])
     torque = np.asarray(jnp.einsum("nij,nj->ni", tr.xs[0][2], tr.us))
-    dt = np.diff(np.asarray(tr.ts))[:, None]
-    impulse = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * dt * (torque[1:] + torque[:-1]), 0)])
+    dt = float(tr.ts[1] - tr.ts[0])  # equally spaced: Simpson's rule at every other saved time
+    impulse = np.concatenate([np.zeros((1, 3)), np.cumsum(dt / 3 * (torque[:-2:2] + 4 * torque[1:-1:2]
+                                                                     + torque[2::2]), 0)])
     assert np.abs(impulse).max() > 0.05
-    np.testing.assert_allclose(np.asarray(K) - np.asarray(K[0]), -impulse, atol=1e-5)
+    np.testing.assert_allclose(np.asarray(K)[::2] - np.asarray(K[0]), -impulse, atol=1e-7)
 
 
 def test_bad_parameters():

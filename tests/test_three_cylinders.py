@@ -105,10 +105,10 @@ def test_guard_and_bad_input():
     th = float(tr.x_end[2])
     assert min(abs(np.sin(th)), abs(np.sin(th - np.pi / 3))) == pytest.approx(mn.chart_eps, abs=1e-6)
     for bad in (0.0, np.pi / 3, np.pi):
-        with pytest.raises(E.ParameterError, match="theta"):
+        with pytest.raises(E.OutsideChartError, match="theta"):
             ThreeCylinders().initial_state(theta=bad)
         # a concrete theta is checked also when another number is traced
-        with pytest.raises(E.ParameterError, match="theta"):
+        with pytest.raises(E.OutsideChartError, match="theta"):
             jax.jit(lambda pd, th=bad: mn.initial_state(theta=th, phi_dot=pd))(1.0)
     for bad in (0.0, np.pi, -1.0, np.nan):
         with pytest.raises(E.ParameterError, match="'a'|a "):

@@ -240,7 +240,7 @@ def _effort(t, x, u):
 def test_ocp_refuses_bad_problems_at_construction():
     di = _DoubleIntegrator()
     for T in (np.inf, 0.0, -1.0, np.nan):
-        with pytest.raises(controls.ProblemError, match="horizon T must be positive and finite"):
+        with pytest.raises(controls.ProblemError, match="T (must be a finite time|= .* must be positive)"):
             controls.OCP(di, jnp.zeros(2), T, running_cost=_effort)
     with pytest.raises(controls.ProblemError, match="does not fit"):
         controls.OCP(di, jnp.zeros(3), 1.0, running_cost=_effort)
@@ -252,8 +252,9 @@ def test_ocp_refuses_bad_problems_at_construction():
         controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort, u_lower=jnp.nan, u_upper=1.0)
     with pytest.raises(controls.ProblemError, match="running_cost must be a callable"):
         controls.OCP(di, jnp.zeros(2), 1.0, running_cost=2.0)
-    with pytest.raises(controls.ProblemError, match="outside the chart"):
+    with pytest.raises(controls.ProblemError, match="outside the chart") as err:
         controls.OCP(FallingCatKinematic(), jnp.zeros(3), 1.0, running_cost=_effort)
+    assert isinstance(err.value, E.OutsideChartError) and err.value.guard == "sin_theta"
     ocp = controls.OCP(di, jnp.zeros(2), 1.0, running_cost=_effort)
     with pytest.raises(controls.ProblemError, match=r"covers \[0, 0.5\] but the problem's horizon is \[0, 1\]"):
         controls.solve_direct(ocp, controls.PiecewiseLinear(4, 0.5, 1))
@@ -332,3 +333,132 @@ def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):
     assert bool(jnp.all(jnp.isnan(bad)))
     np.testing.assert_allclose(np.asarray(good), np.asarray(nhjax.simulate(cat, x0, 2.0, saveat=2).xs[-1]),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_physically_impossible_bodies_are_refused_at_the_edge_of_what_bodies_can_be():
+    """Issue 40: inertias a body cannot have. Each rule is met with equality by a body
+    that exists (accepted) and broken by one part in 1e9 beyond it (refused, naming every
+    argument of the relation)."""
+    from nhjax import mechanics
+    from nhjax.scenes import RollingDisk, RollingSphereWall, ShellWithSuslovHinge, SuslovBundle, ThreeCylinders
+
+    def refused(make, names, match):
+        with pytest.raises(E.ParameterError, match=match) as err:
+            make()
+        assert set(names) <= set(err.value.names), err.value.names
+        assert isinstance(err.value, ValueError)
+
+    m, r, over = 2.0, 0.5, 1 + 1e-9
+    shell = 2.0 / 3.0 * m * r**2  # a thin spherical shell: the largest J of a ball of mass m, radius r
+    BallOnPlatter(m=m, r=r, J=shell)
+    refused(lambda: BallOnPlatter(m=m, r=r, J=shell * over), ("J", "m", "r"), "thin spherical shell")
+    refused(lambda: nhjax.scenes.BallInCone(m=m, r=r, J=shell * over), ("J", "m", "r"), "2/3 m r\\^2")
+    RollingSphereWall(r=r, m=m, k=np.sqrt(2 / 3) * r)  # k: radius of gyration, J = m k^2
+    refused(lambda: RollingSphereWall(r=r, m=m, k=np.sqrt(2 / 3) * r * over), ("k", "m", "r"), "m k\\^2")
+    ShellWithSuslovHinge(ms=m, Rs=r, Is=shell)
+    refused(lambda: ShellWithTop(ms=m, Rs=r, Is=shell * over), ("Is", "ms", "Rs"), "2/3 ms Rs\\^2")
+    # a thin disk: axial moment exactly twice the transverse (cylinder_inertia at length -> 0)
+    I_t, I_a = mechanics.cylinder_inertia(m, 1e-300, r)
+    assert I_a == 2 * I_t
+    RollingDisk(m=m, r=r, J1=I_a, J2=I_t)
+    refused(lambda: RollingDisk(m=m, r=r, J1=I_a, J2=I_t / over), ("J1", "J2"), "at most twice")
+    RollingDisk(m=m, r=r, J1=m * r**2, J2=m * r**2 / 2)  # a ring: all the mass on the rim
+    refused(lambda: RollingDisk(m=m, r=r, J1=m * r**2 * over, J2=m * r**2), ("J1", "m", "r"), "rim")
+    refused(lambda: ThreeCylinders(J_a=2.0 * over, J_t=1.0, m=100.0), ("J_a", "J_t"), "at most twice")
+    refused(lambda: ThreeCylinders(J_l=1.0, J_lt=1.0, m_l=1.0, r1=1.0 / np.sqrt(over)), ("J_l", "m_l", "r1"), "rim")
+    refused(lambda: FallingCat(lam=2.0 * over), ("lam",), "at most twice")
+    FallingCat.from_dimensions(mass=1.0, length=1e-3, radius=0.5)  # a disk-like cylinder: lam -> 2
+    # triangle inequality of principal moments: a flat lamina sits on the edge
+    SuslovBundle(inertia=(1.0, 2.0, 3.0))
+    refused(lambda: SuslovBundle(inertia=(1.0, 2.0, 3.0 * over)), ("inertia",), "exceeds the sum")
+    refused(lambda: ShellWithSuslovHinge(inertia=(1e-3, 2e-3, 3e-3 * over)), ("inertia",), "exceeds the sum")
+    R = np.asarray(so3.exp(jnp.array([0.3, -0.5, 0.2])))
+    refused(lambda: ShellWithTop(It=R @ np.diag([0.01, 0.01, 0.02 * over]) @ R.T), ("It",), "exceeds the sum")
+    # batched bodies: every member checked at once, the member named
+    Is = np.stack([np.diag([1.0, 2.0, 3.0])] * 5)
+    mechanics.RigidBody(jnp.ones(5), jnp.asarray(Is))
+    Is[3] = np.diag([1.0, 1.0, 2.5])
+    refused(lambda: mechanics.RigidBody(jnp.ones(5), jnp.asarray(Is)), ("inertia",), "member 3")
+    refused(lambda: mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.5])])), ("inertias",),
+            "exceeds the sum")
+    mechanics.Bodies([1.0, 1.0], np.stack([np.eye(3), np.diag([0.0, 1.0, 1.0])]))  # a rod: (0, I, I)
+
+
+def test_a_start_outside_the_chart_is_one_error_wherever_it_is_found():
+    """Issue 40: initial_state, simulate and an OCP refuse the same start with the same
+    error, OutsideChartError (a ValueError, and the ChartSingularityError a solve raises
+    at the chart's edge), naming the guard, its value and the argument; a scene that holds
+    a batch of parameter sets refuses to build one state by name."""
+    from nhjax.scenes import BallInCone, RollingDisk
+
+    cat = FallingCat(chart_eps=1e-3)
+    theta = 0.5e-3  # sin(theta) - chart_eps = -0.5e-3: just outside
+    x0 = jnp.array([theta, 0.0, 0.0, 0.0, 0.0])
+    errors = []
+    for call in (lambda: cat.initial_state(theta), lambda: nhjax.simulate(cat, x0, 1.0),
+                 lambda: nhjax.simulate(cat, x0, 1.0, on_guard="stop"),
+                 lambda: controls.OCP(FallingCatKinematic(chart_eps=1e-3), x0[:3], 1.0,
+                                      running_cost=lambda t, x, u: u @ u)):
+        with pytest.raises(E.OutsideChartError) as err:
+            call()
+        errors.append(err.value)
+    for e in errors:
+        assert isinstance(e, ValueError) and isinstance(e, E.ChartSingularityError) and e.t == 0.0
+        assert e.guard == "sin_theta" and "-0.0005 <= 0" in str(e) and "already outside the chart" in str(e)
+    assert [e.name for e in errors] == ["theta", "x0", "x0", "x0"]
+    cat.initial_state(1.5e-3)  # just inside: accepted
+    with pytest.raises(E.OutsideChartError, match="set by theta") as err:
+        RollingDisk().initial_state(theta=np.pi / 2 - 1e-4)
+    assert err.value.guard == "tilt"
+    with pytest.raises(E.OutsideChartError, match="rho = 0.5 puts the ball's centre") as err:
+        BallInCone().initial_state(rho=0.5)
+    assert err.value.name == "rho"
+    # one state is one member's: a batched parameter is named, not a numpy error
+    with pytest.raises(E.ParameterError, match="holds a batch of 2 parameter sets \\(lam has shape \\(2,\\)\\)"):
+        FallingCat(lam=np.array([0.3, 0.4])).initial_state(0.5)
+    with pytest.raises(E.ParameterError, match="gamma has shape"):
+        BallInCone(gamma=np.array([0.9, 1.0])).initial_state()
+
+
+def test_control_parametrizations_and_horizons_follow_simulates_rules():
+    """Issue 40: parametrizations check n, T, dim on construction, T (and an OCP's
+    horizon) by the rules simulate applies to t1, with the same words; plain lists are
+    states wherever simulate takes one."""
+    for kind in (controls.Chebyshev, controls.Fourier, controls.PiecewiseConstant, controls.PiecewiseLinear,
+                 controls.CubicSpline):
+        with pytest.raises(controls.ProblemError, match=f"{kind.__name__}: n must be at least"):
+            kind(-3, 2.0, 2)
+        with pytest.raises(controls.ProblemError, match="T = -2.0 must be positive"):
+            kind(10, -2.0, 2)
+        with pytest.raises(controls.ProblemError, match="dim must be at least 1"):
+            kind(10, 2.0, 0)
+    controls.Chebyshev(0, 2.0, 1)  # degree 0: a constant control
+    with pytest.raises(E.TimeSpanError) as sim:
+        nhjax.simulate(FallingCat(), FallingCat().initial_state(0.6), "2.0")
+    words = str(sim.value).split("t1 ", 1)[1]  # "must be a time in seconds (a real number), got '2.0'"
+    for make in (lambda: controls.Chebyshev(10, "2.0", 2),
+                 lambda: controls.OCP(FallingCatKinematic(), [0.6, 0.0, 0.0], "2.0", running_cost=_effort)):
+        with pytest.raises(controls.ProblemError) as err:
+            make()
+        assert str(err.value).endswith("T " + words)
+    with pytest.raises(controls.ProblemError, match="T must be a finite time"):
+        controls.OCP(FallingCatKinematic(), [0.6, 0.0, 0.0], np.inf, running_cost=_effort)
+    cheb = controls.Chebyshev(3, 2.0, 2)
+    with pytest.raises(controls.ProblemError, match="u_fn\\(t\\) must return the 2 inputs, shape \\(2,\\), got \\(3,\\)"):
+        cheb.fit(lambda t: jnp.stack([t, t, t]))
+    # an exact fit: (t, t^2) on [0, 2] is 1 + s and 3/2 + 2 s + T_2(s) / 2 with s = t - 1
+    np.testing.assert_allclose(cheb.fit(lambda t: jnp.stack([t, t * t])).reshape(4, 2),
+                               [[1.0, 1.5], [1.0, 2.0], [0.0, 0.5], [0.0, 0.0]], atol=1e-13)
+    with pytest.raises(controls.ProblemError, match="takes 8 parameters, got shape \\(3,\\)"):
+        cheb.signal(np.zeros(3))
+    # a plain list is a state: the same numbers as the array; refused by name if not numbers
+    cat = FallingCatKinematic()
+    ocp = controls.OCP(cat, [0.6, 0.0, 0.0], 2.0, running_cost=_effort)
+    assert isinstance(ocp.x0, jax.Array) and ocp.x0.shape == (3,)
+    osc_list = nhjax.simulate(OSC, [1.0, 0.0], 1.0, saveat=2, rtol=1e-10, atol=1e-10)
+    osc_array = nhjax.simulate(OSC, jnp.array([1.0, 0.0]), 1.0, saveat=2, rtol=1e-10, atol=1e-10)
+    np.testing.assert_array_equal(osc_list.xs, osc_array.xs)
+    np.testing.assert_allclose(osc_list.xs[-1, 0], np.cos(2.0), atol=1e-8)
+    with pytest.raises(E.StateError, match="x0 must be an array of real numbers") as err:
+        nhjax.simulate(OSC, [1.0, "a"], 1.0)
+    assert err.value.name == "x0"

@@ -12,11 +12,12 @@ import inspect
 import re
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import controls
@@ -37,6 +38,8 @@ values = st.one_of(st.sampled_from(BAD), st.floats(1e-3, 1e3))
 # parameters that are physically positive, by the names the scenes use (masses, lengths,
 # radii, moments of inertia, their ratios): zero or a negative value must be refused
 POSITIVE = re.compile(r"^(m|ms|mt|mass|r|Rs|a|length|radius|I1|I2|Is|It|J|J1|J2|Jc|Jw|lam|B|inertia)$")
+# ... except where the same letter is a wall's motion: an amplitude B or acceleration a (any real)
+SIGNED = {("ParticleInMovingCircle", "B"), ("RollingSphereWall", "B"), ("RollingSphereWall", "a")}
 
 
 def _numeric_params(cls):
@@ -81,13 +84,15 @@ def test_scene_constructors_name_bad_parameters(cls, data):
         system = cls(**{name: value})
     except E.NhjaxError as err:
         assert isinstance(err, ValueError)
-        if isinstance(err, E.ParameterError):
-            assert err.name.split("[")[0] == name, f"{cls.__name__}({name}={value!r}) blamed {err.name!r}: {err}"
+        if isinstance(err, E.ParameterError):  # (a relation between parameters names them all)
+            assert name in {n.split("[")[0] for n in err.names}, \
+                f"{cls.__name__}({name}={value!r}) blamed {err.names!r}: {err}"
         assert name in str(err)
         return
     # accepted: then the value was a legitimate one, stored as given (no NaN, no sign flip)
     assert np.isfinite(v), f"{cls.__name__} accepted {name}={value!r}"
-    assert not (POSITIVE.match(name) and v <= 0), f"{cls.__name__} accepted {name}={value!r}"
+    assert not (POSITIVE.match(name) and (cls.__name__, name) not in SIGNED and v <= 0), \
+        f"{cls.__name__} accepted {name}={value!r}"
     assert _stored_arrays_finite(system)
 
 
@@ -290,8 +295,9 @@ PROBES = {
         guard_eps=np.nan),
     "nhjax.mechanics.curvature_integral": lambda: mechanics.curvature_integral(
         scenes.PlanarChain(group="SO2").kinematic(), lambda a: jnp.stack([jnp.cos(a), jnp.sin(a)]), (np.nan, 0.5)),
-    # the parametrizations are checked where they meet a problem (solve_direct/_newton)
-    **{f"controls.{n}": (lambda n=n: controls.solve_direct(_ocp(), getattr(controls, n)(3, 0.5, 1)))
+    # the parametrizations check their numbers on construction (and meet a problem in
+    # solve_direct, which checks that they cover its horizon)
+    **{f"controls.{n}": (lambda n=n: getattr(controls, n)(-3, 0.5, 1))
        for n in ("Chebyshev", "CubicSpline", "Fourier", "PiecewiseConstant", "PiecewiseLinear")},
 }
 # Public names that take no user input to check, or whose checks live in files this layer
@@ -303,6 +309,7 @@ EXEMPT = {
     "nhjax.Trajectory": "result container returned by simulate",
     "nhjax.BatchTrajectory": "result container returned by simulate_batch",
     "nhjax.ImpactTrajectory": "result container returned by simulate_impacts",
+    "nhjax.ImpactBatchTrajectory": "result container returned by simulate_impacts_batch",
     "nhjax.mechanics.affine_projector": "pure function of arrays (the seed's jump map; runs traced)",
     "nhjax.mechanics.contact_dynamics": "pure function of arrays (runs traced inside a solve)",
     "nhjax.mechanics.impact_velocities": "pure function of arrays (the seed's jump map; runs traced)",
@@ -360,3 +367,197 @@ def test_wrong_solver_for_group_states_and_nonfinite_control_are_named():
     cat = scenes.FallingCat()
     with pytest.raises(E.ControlError, match="returned shape"):
         nhjax.simulate(cat, cat.initial_state(0.8), 1.0, control=lambda t, x: jnp.zeros(3))
+
+
+# ------------------------------------------------------------------ realizable inertias
+@FEW
+@given(n=st.integers(1, 6), seed=st.integers(0, 2**31 - 1), flat=st.booleans())
+def test_inertias_of_point_clouds_are_accepted_and_a_broken_triangle_is_not(n, seed, flat):
+    """The realizability check (nhjax._validate.inertias) accepts every inertia tensor a
+    body can have -- that of any cloud of point masses about its centre of mass, flat
+    ones (on the triangle inequality's edge) included -- and refuses the same principal
+    moments once the largest exceeds the sum of the other two."""
+    from nhjax import _validate as V
+
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(0.1, 2.0, n)
+    y = rng.normal(size=(n, 3)) * rng.uniform(0.1, 3.0, 3)
+    if flat:
+        y[:, 2] = 0.0
+    y -= m @ y / m.sum()
+    I = np.einsum("n,ij->ij", m * np.sum(y * y, 1), np.eye(3)) - np.einsum("n,ni,nj->ij", m, y, y)
+    V.inertias("I", I, allow_zero=True)
+    ev = np.linalg.eigvalsh(I)
+    assert ev[2] <= ev[0] + ev[1] + 1e-12 * ev[2]
+    if ev[0] > 1e-9 * ev[2]:
+        V.inertia_tensor("I", I)
+    broken = np.array([ev[0], ev[1], (ev[0] + ev[1]) * (1 + 1e-6) + 1e-9])
+    with pytest.raises(E.ParameterError, match="exceeds the sum"):
+        V.inertias("I", np.diag(broken), allow_zero=True)
+
+
+
+# ------------------------------------------------------------------ the newer paths (issue 40)
+@FEW
+@given(alpha=st.lists(st.one_of(st.floats(0.0, 1.0), st.sampled_from([1.5, -0.1, np.nan])), min_size=5, max_size=5),
+       height=st.lists(st.one_of(st.floats(0.0, 0.3), st.sampled_from([-1e-3, -0.2, np.nan])), min_size=5,
+                       max_size=5))
+@example(alpha=[0.5] * 5, height=[0.1] * 5)  # (both outcomes, whatever the draws)
+@example(alpha=[0.5, 1.5, 0.5, 0.5, 0.5], height=[0.1, 0.1, -0.2, np.nan, 0.0])
+def test_impact_batches_refuse_exactly_the_members_simulate_impacts_refuses(alpha, height):
+    """Each member of an impact batch gets simulate_impacts's checks before any solve:
+    the members refused (BatchError, on_error="raise") are exactly those whose
+    restitution is outside [0, 1] or whose start is below the table (or NaN), with the
+    reason of the first failed check; a batch without one goes on to solve."""
+    from nhjax.integrate import impacts
+
+    alpha, height = np.asarray(alpha), np.asarray(height)
+    ball = scenes.BouncingBall()
+    balls = eqx.tree_at(lambda s: s.restitution, ball, jnp.asarray(alpha))
+    x0 = np.stack([height, np.zeros(5)], 1)
+    bad_alpha = ~((alpha >= 0) & (alpha <= 1))
+    bad_x0 = ~np.isfinite(height)
+    below = np.isfinite(height) & (height < -1e-8)
+    expected = np.flatnonzero(bad_x0 | bad_alpha | below).tolist()
+
+    class Solved(Exception):
+        pass
+
+    def solve(*a, **k):
+        raise Solved
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(impacts, "_lockstep_chunk", solve)
+        with pytest.raises((nhjax.BatchError, Solved)) as err:
+            nhjax.simulate_impacts_batch(balls, x0, 0.5, in_axes={"system": ["restitution"], "x0": 0})
+    if not expected:
+        assert err.type is Solved
+        return
+    assert err.value.members == expected
+    for m, why in zip(err.value.members, err.value.reasons):
+        if bad_x0[m]:
+            assert "NaN" in why
+        elif bad_alpha[m]:
+            assert "restitution" in why
+        else:
+            assert "forbidden side" in why
+
+
+@FEW
+@given(k=st.integers(0, 5), nan_at=st.integers(-1, 1), which=st.sampled_from(
+    ["connection", "reduced_metric", "metric", "curvature", "locked_inertia"]))
+@example(k=2, nan_at=-1, which="connection")
+@example(k=2, nan_at=-1, which="reduced_metric")
+def test_reduction_geometry_names_the_wrong_number_of_shape_coordinates(k, nan_at, which):
+    """A ReducedSystem's geometry takes r of shape (k,) (here k = 2), finite: anything
+    else is ParameterError naming r; a good r gives the metric's blocks (I^-1 B, and
+    G_rr - B^T I^-1 B, recomputed from the metric in NumPy)."""
+    chain = scenes.PlanarChain(group="SO2", momentum="zero")
+    r = np.linspace(0.2, 0.9, k)
+    if 0 <= nan_at < k:
+        r[nan_at] = np.nan
+    ok = k == 2 and not np.isnan(r).any()
+    try:
+        out = getattr(chain, which)(jnp.asarray(r))
+    except E.ParameterError as err:
+        assert not ok and err.name == "r"
+        return
+    assert ok
+    G = np.asarray(chain.metric(jnp.asarray(r)))
+    I, B = G[:1, :1], G[:1, 1:]
+    if which == "connection":
+        np.testing.assert_allclose(out, np.linalg.solve(I, B), rtol=1e-12)
+    elif which == "reduced_metric":
+        np.testing.assert_allclose(out, G[1:, 1:] - B.T @ np.linalg.solve(I, B), rtol=1e-12)
+
+
+@FEW
+@given(a=st.floats(0.05, 1.0), b=st.floats(0.05, 1.0), gap=st.one_of(st.just(0.0), st.floats(1e-12, 1e-2)),
+       tol=st.floats(1e-10, 1e-4))
+@example(a=0.5, b=0.3, gap=1e-9, tol=1e-8)
+@example(a=0.5, b=0.3, gap=1e-7, tol=1e-8)
+def test_a_loop_is_integrated_only_if_it_closes_to_the_stated_tolerance(open_ellipse, a, b, gap, tol):
+    """curvature_integral's loop check: an ellipse that ends ``gap`` from its start is
+    refused exactly when the gap exceeds closure_tol times its size (its largest distance
+    from the centre, here max(a, b) to within the end's shift)."""
+    from nhjax.mechanics import reduction
+
+    c = np.array([1.0, 0.8])
+    loop = open_ellipse(jnp.asarray(c), *jnp.asarray([a, b, gap]))
+    alphas = np.concatenate([[0.0], np.linspace(0.1, 6.2, 9), [2 * np.pi]])
+    size = max(float(np.max(np.linalg.norm(np.asarray(jax.vmap(loop)(jnp.asarray(alphas))) - c, axis=1))), 1e-300)
+    try:
+        reduction._check_loop(loop, c, alphas, tol, "curvature_integral")
+    except E.ParameterError as err:
+        assert gap > tol * size and err.name == "loop" and "does not close" in str(err)
+        return
+    assert gap <= tol * size
+
+
+@FEW
+@given(theta=st.one_of(st.floats(-2e-3, 2e-3), st.floats(0.1, 3.0)))
+@example(theta=0.5e-3)
+@example(theta=1.5e-3)
+def test_a_start_outside_the_chart_is_refused_alike_everywhere(theta):
+    """The cat's chart guard sin(theta) - chart_eps: initial_state and simulate refuse
+    exactly the same starts, with OutsideChartError (ValueError and
+    ChartSingularityError), the guard named; the others are accepted."""
+    cat = scenes.FallingCat(chart_eps=1e-3)
+    inside = np.sin(theta) - 1e-3 > 0
+    try:
+        x0 = cat.initial_state(theta)
+    except E.OutsideChartError as err:
+        assert not inside and err.guard == "sin_theta" and err.name == "theta"
+        assert isinstance(err, ValueError) and isinstance(err, E.ChartSingularityError)
+        with pytest.raises(E.OutsideChartError):
+            _check_inputs(cat, None, jnp.array([theta, 0.0, 0.0, 0.0, 0.0]), 0.0, 1e-8, False)
+        return
+    assert inside
+    _check_inputs(cat, None, x0, 0.0, 1e-8, False)
+
+
+horizons = st.one_of(st.floats(1e-3, 1e3), st.sampled_from([0.0, -1.0, np.nan, np.inf, "2.0", None]))
+
+
+@FEW
+@given(kind=st.sampled_from(["Chebyshev", "Fourier", "PiecewiseConstant", "PiecewiseLinear", "CubicSpline"]),
+       n=st.one_of(st.integers(-3, 12), st.sampled_from([2.5, np.nan])), T=horizons,
+       dim=st.integers(-1, 3))
+@example(kind="Chebyshev", n=0, T=2.0, dim=2)
+@example(kind="CubicSpline", n=4, T="2.0", dim=1)
+def test_parametrizations_are_checked_on_construction_by_simulates_rules(kind, n, T, dim):
+    """Every (n, T, dim): a ProblemError naming the first bad number -- n an integer at
+    least 1 (the degree of Fourier and Chebyshev: at least 0), T by simulate's rules for
+    a time (a finite real number, not a string) and > 0, dim >= 1 -- or a
+    parametrization that stores them as given."""
+    cls = getattr(controls, kind)
+    least = 0 if kind in ("Chebyshev", "Fourier") else 1
+    n_ok = isinstance(n, int) and n >= least
+    T_ok = isinstance(T, float) and np.isfinite(T) and T > 0
+    try:
+        p = cls(n, T, dim)
+    except controls.ProblemError as err:
+        first = "n" if not n_ok else "T" if not T_ok else "dim"
+        assert not (n_ok and T_ok and dim >= 1)
+        assert f"{kind}: {first} " in str(err), str(err)
+        return
+    assert n_ok and T_ok and dim >= 1
+    assert (p.n, float(p.T), p.dim) == (n, T, dim) and p.size >= dim
+
+
+@FEW
+@given(values=st.lists(st.one_of(st.floats(-2.0, 2.0), st.just("x")), min_size=0, max_size=4))
+@example(values=[0.5, -1.0])
+@example(values=[0.5, "x"])
+def test_plain_lists_are_states_or_are_refused_by_name(values):
+    """simulate(OSC, [a, b]) is simulate(OSC, array([a, b])): the exact solution; a list
+    of the wrong length or holding text is a StateError naming x0."""
+    numeric = all(isinstance(v, float) for v in values)
+    try:
+        tr = nhjax.simulate(OSC, list(values), jnp.asarray(1.0), saveat=2, rtol=1e-10, atol=1e-10)
+    except E.StateError as err:
+        assert not (numeric and len(values) == 2) and err.name == "x0"
+        return
+    assert numeric and len(values) == 2
+    a, b = values
+    np.testing.assert_allclose(float(tr.xs[-1, 0]), a * np.cos(2.0) + 0.5 * b * np.sin(2.0), atol=1e-7 * (1 + abs(a) + abs(b)))

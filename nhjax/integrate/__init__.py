@@ -2,7 +2,7 @@
 
 from .adjoint import DiscreteAdjoint
 from .batch import BatchError, BatchTrajectory, simulate_batch, stack
-from .impacts import ImpactTrajectory, simulate_impacts, simulate_impacts_batch, solve_impacts
+from .impacts import ImpactBatchTrajectory, ImpactTrajectory, simulate_impacts, simulate_impacts_batch, solve_impacts
 from .rkmk import LieODETerm, RKMK4, RKMK45
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
 from .simulate import Trajectory, simulate
@@ -11,6 +11,7 @@ __all__ = [
     "BatchError",
     "BatchTrajectory",
     "DiscreteAdjoint",
+    "ImpactBatchTrajectory",
     "ImpactTrajectory",
     "LieODETerm",
     "PiecewiseConstant",

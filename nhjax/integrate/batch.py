@@ -38,7 +38,7 @@ import dataclasses
 import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, ClassVar
 
 import diffrax
 import equinox as eqx
@@ -48,6 +48,7 @@ import jax.tree_util as jtu
 import numpy as np
 
 from .._validate import (
+    as_state,
     check_control,
     check_memory,
     check_saveat,
@@ -78,7 +79,7 @@ from .simulate import (
     _to_plain,
 )
 
-__all__ = ["BatchError", "BatchTrajectory", "STATUSES", "simulate_batch", "stack"]
+__all__ = ["BatchError", "BatchTrajectory", "MemberStatuses", "STATUSES", "simulate_batch", "stack"]
 
 
 def stack(members):
@@ -317,7 +318,54 @@ STATUSES = ("ok", "guard", "max_steps", "non-finite", "solver failure", "bad x0"
 OK, GUARD, MAX_STEPS, NONFINITE, SOLVER, BAD_X0 = range(len(STATUSES))
 
 
-class BatchTrajectory(Trajectory):
+class MemberStatuses:
+    """What every batch result says about its members, from its ``status`` codes
+    (indices into the class's ``STATUS_NAMES``) and ``reasons`` (member -> text for
+    every member that did not end as it should): ``simulate_batch``'s ``BatchTrajectory``
+    and the impact batches' ``ImpactBatchTrajectory`` share it.
+
+    Masks over the members: ``ok`` (reached t1), ``stopped`` (ended early as asked:
+    a chart guard with ``on_guard="stop"``, max_impacts with ``on_max_impacts="stop"``),
+    ``failed`` (anything else, bad inputs included)."""
+
+    STATUS_NAMES: ClassVar[tuple] = ()
+    OK_CODE: ClassVar[int] = 0
+    STOP_CODES: ClassVar[tuple] = ()
+
+    def __len__(self):
+        return int(np.shape(self.status)[0])
+
+    @property
+    def ok(self):
+        return np.asarray(self.status) == self.OK_CODE
+
+    @property
+    def stopped(self):
+        return np.isin(np.asarray(self.status), self.STOP_CODES)
+
+    @property
+    def failed(self):
+        return ~(self.ok | self.stopped)
+
+    def status_names(self):
+        """Each member's status as text."""
+        return [self.STATUS_NAMES[int(s)] for s in np.asarray(self.status)]
+
+    def counts(self) -> dict:
+        """Number of members per status (statuses that occur)."""
+        codes, n = np.unique(np.asarray(self.status), return_counts=True)
+        return {self.STATUS_NAMES[int(c)]: int(k) for c, k in zip(codes, n)}
+
+    def _reason_lines(self, show: int) -> list:
+        bad = sorted(self.reasons)
+        t = np.asarray(self.t_final)
+        lines = [f"  member {m}: {self.reasons[m]} at t = {float(t[m]):.6g}" for m in bad[:show]]
+        if len(bad) > show:
+            lines.append(f"  ... and {len(bad) - show} more (traj.reasons)")
+        return lines
+
+
+class BatchTrajectory(MemberStatuses, Trajectory):
     """The result of ``simulate_batch``: every field of ``Trajectory`` with a leading
     member axis (``xs[i]`` is member i's saved states), plus per-member statuses.
 
@@ -338,20 +386,9 @@ class BatchTrajectory(Trajectory):
     status: Any = None
     reasons: dict = eqx.field(static=True, default_factory=dict)
 
-    def __len__(self):
-        return int(jnp.shape(self.t_final)[0])
-
-    @property
-    def ok(self):
-        return np.asarray(self.status) == OK
-
-    @property
-    def stopped(self):
-        return np.asarray(self.status) == GUARD
-
-    @property
-    def failed(self):
-        return ~(self.ok | self.stopped)
+    STATUS_NAMES = STATUSES
+    OK_CODE = OK
+    STOP_CODES = (GUARD,)
 
     @property
     def valid(self):
@@ -364,15 +401,6 @@ class BatchTrajectory(Trajectory):
     @property
     def x_final(self):
         return jtu.tree_map(lambda a: a[:, -1], self.xs)
-
-    def status_names(self):
-        """Each member's status as text."""
-        return [STATUSES[int(s)] for s in np.asarray(self.status)]
-
-    def counts(self) -> dict:
-        """Number of members per status (statuses that occur)."""
-        codes, n = np.unique(np.asarray(self.status), return_counts=True)
-        return {STATUSES[int(c)]: int(k) for c, k in zip(codes, n)}
 
     def summary(self, show: int = 8) -> str:
         """How many members reached t1, which did not and why, and the spread of steps
@@ -391,12 +419,7 @@ class BatchTrajectory(Trajectory):
                 if v.size:
                     lines.append(f"  {label} '{k}': max |change| over ok members {v.max():.2e} "
                                  f"(median {np.median(v):.2e})")
-        bad = sorted(self.reasons)
-        for m in bad[:show]:
-            lines.append(f"  member {m}: {self.reasons[m]} at t = {float(self.t_final[m]):.6g}")
-        if len(bad) > show:
-            lines.append(f"  ... and {len(bad) - show} more (traj.reasons)")
-        return "\n".join(lines)
+        return "\n".join(lines + self._reason_lines(show))
 
 
 def simulate_batch(
@@ -413,8 +436,8 @@ def simulate_batch(
     progress: bool | None = None,
     saveat=2,
     solver=None,
-    rtol: float = 1e-8,
-    atol: float = 1e-8,
+    rtol: float | None = None,
+    atol: float | None = None,
     dt0=None,
     max_steps: int | None = None,
     stepsize_controller=None,
@@ -447,6 +470,8 @@ def simulate_batch(
         on a single CPU device when the machine has at least 2 cores).
     progress : tqdm bar over chunks (default: on for more than 4 chunks).
     saveat : as in simulate(); default 2 (t0 and t1), the cheap choice for big batches.
+    rtol, atol : as in simulate(); default 1e-8 (1e-10 for systems with one-sided
+        constraints, as ``simulate_impacts``).
     on_guard : "raise" (BatchError naming the members a chart guard stopped) or "stop".
     track_work : integrate the work of the inputs for an energy - work report. Default:
         only when the system has no invariant or constraint of its own to report (the
@@ -460,8 +485,11 @@ def simulate_batch(
         simulate_batch_on_client``: a lost worker's chunks are rerun; the ``dask`` extra).
     impact_options : for systems with one-sided constraints (``unilateral_constraints``:
         bouncing balls, moving walls), which go to the lock-step impact batch
-        (``nhjax.integrate.impacts.simulate_batch_impacts``, returning an
-        ``ImpactTrajectory``): ``max_impacts``, ``rest_velocity``, ... of ``solve_impacts``.
+        (``nhjax.simulate_impacts_batch``, returning an ``ImpactBatchTrajectory``: the
+        same per-member ``status``, ``reasons``, ``ok`` and ``summary()``, with the
+        statuses of impact solves): ``max_impacts``, ``on_max_impacts``,
+        ``rest_velocity``, ... Their members' starts are checked as
+        ``simulate_impacts`` checks one, before any solve.
     Other arguments as ``nhjax.simulate``.
     """
     owner = "simulate_batch"
@@ -488,6 +516,8 @@ def simulate_batch(
                         f"({type(system).__name__} has no one-sided constraints, for which they would be meant)")
     choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
     choice("on_error", on_error, ("raise", "return"), owner=owner)
+    rtol = 1e-8 if rtol is None else rtol
+    atol = 1e-8 if atol is None else atol
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol, owner=owner)
     t0, t1 = time_span(t0, t1, owner=owner)
     check_saveat(saveat, t0, t1, owner=owner)
@@ -498,7 +528,7 @@ def simulate_batch(
     for k, v in axes_d.items():
         if v not in (0, None):
             raise ValueError(f"in_axes['{k}'] must be 0 or None, got {v}")
-    x0 = jtu.tree_map(lambda a: np.asarray(a, float), x0)
+    x0 = as_state(system, x0, owner=owner, xp=np)
     axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
     B = _batch_size((system, x0, control), axes)
     if lanes is not None:

@@ -9,7 +9,9 @@ diffrax's own) and is in one of two phases:
   functions are sampled on its dense output (``event_samples`` points, the
   last the step's end): for a free contact e_a = psi_a(t, q), for a persistent
   one e_a = mu_a (its compressive multiplier). The first sample where some e_a
-  < -tol brackets an event [s_{j-1}, s_j]; the step is then *not* taken and
+  < -tol brackets an event [s_i, s_j], s_i the last sample before it (or the
+  step's start) where the crossing gaps are still >= 0 (samples in between lie
+  in the graze band, already past the root); the step is then *not* taken and
   the loop switches to
 * **locating**: Newton's method on G(tau) = min_a e_a(tau, y(tau)) over the
   bracketed events, where y(tau) is a genuine Runge-Kutta step from the last
@@ -43,7 +45,15 @@ Rules (documented behaviour)
   released where mu crosses zero (-``release_tol``).
 * Grazing: a crossing shallower than ``graze_tol`` (in psi's units) between
   samples is not an event; an event located with Psi >= 0 (tangential touch)
-  gives no impulse and is handled by the rest rule.
+  gives no impulse and is handled by the rest rule. A step that *ends* inside that
+  band (-graze_tol <= psi < 0) while the contact still approaches faster than
+  ``rest_velocity`` ended just past an impact: that is an event, located in the
+  step's last sample interval, so that every impact time is the root of the
+  computed flight whatever the step boundaries (a flight that is a multiple of the
+  largest step ends within round-off of its impact).
+* Contact events: every rest (a contact becoming persistent, at t0 or at an impact)
+  and release is a row of the event record (``event_times``, ``event_rest``,
+  ``event_release``, ``event_states``), 2 (max_impacts + 1) rows.
 * Simultaneous events: every bracketed contact whose e_a is within its
   tolerance at the root takes part (a multi-contact impact by the projector,
   contacts that would pull are dropped); later ones in the same step are
@@ -94,8 +104,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
-from .._validate import check_saveat, choice, in_range, integer, solver_settings, time_span
-from ..errors import ConstraintViolationError, IntegrationError, ParameterError, StateError
+from .._validate import check_saveat, choice, first_failures, integer, positive, solver_settings, time_span
+from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
+from .batch import BatchError, MemberStatuses
 from ..mechanics.impacts import (
     _contact_kkt,
     _impact_from_geometry,
@@ -104,10 +115,13 @@ from ..mechanics.impacts import (
     restitution_of,
 )
 
-__all__ = ["ImpactTrajectory", "STATUS", "simulate_batch_impacts", "simulate_impacts", "simulate_impacts_batch",
-           "solve_impacts"]
+__all__ = ["ImpactBatchTrajectory", "ImpactTrajectory", "STATUS", "simulate_batch_impacts", "simulate_impacts",
+           "simulate_impacts_batch", "solve_impacts"]
 
-STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled"}
+#: ``ImpactTrajectory.status`` codes; 5 ("bad input") only in a batch: a member whose
+#: start or parameters failed the checks, not solved.
+STATUS = {0: "success", 1: "max_impacts", 2: "max_steps", 3: "nonfinite", 4: "stalled", 5: "bad input"}
+BAD_INPUT = 5
 # loop iterations without progress in time after which the solve is declared stalled
 _STALL = 500
 
@@ -134,6 +148,12 @@ class ImpactTrajectory(eqx.Module):
     persistent (k,) : contacts persistent at the end; rest_times (k,): last time
         each became persistent (NaN: never); release_times (k,): last time each was
         released (NaN: never); num_releases.
+    event_times (M,), event_rest (M, k), event_release (M, k), event_states (M, 2n) :
+        every contact event (a contact coming to rest, at t0 or at an impact, or being
+        released) in order: its time, which contacts came to rest and which were
+        released, and the state just after it; M = 2 (max_impacts + 1) rows, NaN past
+        num_events (the count of all events; more than M only if contacts came to rest
+        without impacts, then the rows hold the first M).
     min_gap (k,) : smallest psi of free contacts at the accepted steps' ends
         (penetration, if negative).
     constraint_residual : max |A q' + a| at step ends (permanent constraints).
@@ -164,6 +184,11 @@ class ImpactTrajectory(eqx.Module):
     rest_times: jax.Array
     release_times: jax.Array
     num_releases: jax.Array
+    event_times: jax.Array
+    event_rest: jax.Array
+    event_release: jax.Array
+    event_states: jax.Array
+    num_events: jax.Array
     min_gap: jax.Array
     constraint_residual: jax.Array
     contact_residual: jax.Array
@@ -217,11 +242,105 @@ def _num_contacts(system, t0, x0):
 
 
 def _start_residuals(system, x0, t0):
-    """(psi(t0, q0), the permanent constraints' velocity residual at x0): what
-    ``simulate_impacts`` checks of a start (one stored program, not eager operations)."""
+    """(psi(t0, q0), the permanent constraints' velocity residual at x0)."""
     q0, qd0 = x0[: system.n], x0[system.n:]
     return (jnp.atleast_1d(system.unilateral_constraints(t0, q0)),
             jnp.atleast_1d(system._all_velocity_constraints(t0, q0, qd0)))
+
+
+def _boundary_samples(system, t0, t1) -> int:
+    """Times at which ``_start_report`` samples a moving boundary's margins over [t0, t1]:
+    8 per ``event_resolution`` (which resolves the boundary's motion), at least 1025,
+    at most 65537, a power of two plus one (few sizes: few programs)."""
+    res = getattr(system, "event_resolution", None)
+    need = 1024 if not res else int(np.ceil(8 * (float(t1) - float(t0)) / float(res)))
+    return int(min(max(1 << max(need - 1, 1).bit_length(), 1024), 65536)) + 1
+
+
+def _start_report(system, x0, t0, t1, n_samples):
+    """Everything ``simulate_impacts`` checks of one member's start, as numbers (one
+    stored program; vmapped over a batch's members by ``_start_report_batch``):
+    ``finite`` (x0), ``psi`` (the gaps at t0, >= 0 required), ``permanent`` (the
+    permanent constraints' residual at x0), ``restitution`` (in [0, 1] required), and
+    for a system with moving boundaries (``boundary_margins(t)``: name -> margin that
+    must stay > 0, e.g. a moving circle's radius) each margin's smallest sample on
+    ``n_samples`` times of [t0, t1] with the first sampled time at which it is <= 0."""
+    psi0, res = _start_residuals(system, x0, t0)
+    out = dict(finite=jnp.all(jnp.isfinite(x0)), psi=psi0, permanent=res,
+               restitution=restitution_of(system, psi0.shape[0]))
+    if hasattr(system, "boundary_margins"):
+        ts = t0 + (t1 - t0) * jnp.linspace(0.0, 1.0, n_samples)
+        margins = jax.vmap(system.boundary_margins)(ts)
+        out["boundary"] = {k: dict(min=jnp.min(v), t=_first_zero(ts, v)) for k, v in margins.items()}
+    return out
+
+
+def _first_zero(ts, v):
+    """The first time at which samples ``v`` of a margin at times ``ts`` reach <= 0, by
+    linear interpolation from the last positive sample (ts[0] if the first is <= 0)."""
+    i = jnp.argmax(v <= 0)
+    lo = jnp.maximum(i - 1, 0)
+    frac = jnp.where(i > 0, v[lo] / (v[lo] - v[i]), 0.0)
+    return ts[lo] + (ts[i] - ts[lo]) * frac
+
+
+def _start_report_batch(system, x0, t0, t1, n_samples, sys_axes, x_axis):
+    return jax.vmap(lambda s, x: _start_report(s, x, t0, t1, n_samples), in_axes=(sys_axes, x_axis))(system, x0)
+
+
+def _start_failures(report, B, constraint_tol, owner, batched=(True, True)):
+    """[(member, (reason, error))] for the members whose start fails a check, in the order
+    of ``simulate_impacts``'s checks: x0 finite, restitution in [0, 1], no moving boundary
+    degenerating in [t0, t1], psi(t0, q0) >= -constraint_tol, the permanent constraints
+    met. ``report``: ``_start_report``'s numbers with a leading member axis (numpy, all
+    members at once). ``batched``: (system, x0) carry a member axis; a failed check that
+    depends only on shared inputs raises its error at once (it is no member's own)."""
+    r = jax.device_get(report)
+    fin = np.asarray(r["finite"]).reshape(B)
+    alpha = np.asarray(r["restitution"]).reshape(B, -1)
+    psi = np.asarray(r["psi"]).reshape(B, -1)
+    perm = np.asarray(r["permanent"]).reshape(B, -1)
+    perm = np.max(np.abs(perm), axis=1) if perm.shape[1] else np.zeros(B)
+    sys_b, x_b = batched
+
+    def restitution(j):
+        a = int(np.argmax(~((alpha[j] >= 0) & (alpha[j] <= 1))))
+        return (f"restitution[{a}] = {float(alpha[j, a])!r} outside [0, 1]",
+                ParameterError(f"{owner}: restitution must lie in [0, 1] (coefficient of restitution of every "
+                               f"contact), got {alpha[j].tolist()}; pass values in that range", "restitution",
+                               alpha[j]))
+
+    def forbidden(j):
+        a = int(np.argmin(psi[j]))
+        return (f"x0 starts on the forbidden side of unilateral[{a}] (psi = {psi[j, a]:.3g} < 0)",
+                ConstraintViolationError(f"unilateral[{a}]", float(-psi[j, a]), constraint_tol,
+                                         "the initial configuration is on the forbidden side psi < 0"))
+
+    def permanent(j):
+        return (f"x0 violates the permanent constraints by {perm[j]:.3g}",
+                ConstraintViolationError("permanent", float(perm[j]), constraint_tol))
+
+    checks = [(~fin, lambda j: ("x0 contains NaN or inf", StateError(
+        f"{owner}: initial state x0 contains NaN or inf; pass finite numbers", "x0")), x_b),
+              (~np.all((alpha >= 0) & (alpha <= 1), axis=1), restitution, sys_b)]
+    for name, b in r.get("boundary", {}).items():
+        low, at = np.asarray(b["min"]).reshape(B), np.asarray(b["t"]).reshape(B)
+
+        def boundary(j, name=name, low=low, at=at):
+            return (f"moving boundary '{name}' degenerates at t ~ {at[j]:.6g} (margin {low[j]:.3g} <= 0)",
+                    BoundaryError(
+                        f"{owner}: the moving boundary '{name}' degenerates within [t0, t1]: its margin "
+                        f"reaches {low[j]:.3g} <= 0, first at t ~ {at[j]:.6g} (e.g. a moving circle's radius "
+                        "reaching 0), where no motion is defined; end the time span before then (t1) or change the "
+                        "boundary's parameters", name, at[j], low[j]))
+
+        checks.append((~(low > 0), boundary, sys_b))
+    checks += [(fin & np.any(psi < -constraint_tol, axis=1), forbidden, x_b or sys_b),
+               (fin & (perm > constraint_tol), permanent, x_b or sys_b)]
+    for mask, what, member_own in checks:
+        if mask.any() and not member_own:
+            raise what(int(np.argmax(mask)))[1]
+    return first_failures([(mask, what) for mask, what, _ in checks], B)
 
 
 #: ImpactTrajectory's array fields (what the stored program returns)
@@ -248,6 +367,30 @@ def _with_adjoint(adjoint, args, nz=None):
     """``_solve_plain``'s arguments with another adjoint (the same values): "forward" for
     jax.jvp / jax.jacfwd, "reverse" for jax.grad / jax.jacrev."""
     return (*args[:-1], adjoint)
+
+
+def _event_capacity(max_impacts: int) -> int:
+    """Rows of the contact-event record: a contact comes to rest at an impact (or at t0)
+    and is released once per rest, so 2 (max_impacts + 1) rows hold every event of a
+    solve that stops at max_impacts."""
+    return 2 * int(max_impacts) + 2
+
+
+def _write_rows(records, rows, c, lead=()):
+    """``records`` with the iteration's rows written: impact rows ("imp_" keys) at
+    ``c["rec_row"]``, contact-event rows ("ev_" keys) at ``c["ev_row"]`` (out of range:
+    none). ``lead``: leading indices (the lock-step batch's member slots). Contact events
+    are rare (a rest, a release): their rows are written in a branch taken only by an
+    iteration that has one, not scattered every iteration."""
+    out = {key: records[key].at[lead + (c["rec_row"],)].set(rows[key], mode="drop")
+           for key in records if not key.startswith("ev_")}
+    ev = {key: records[key] for key in records if key.startswith("ev_")}
+    capacity = ev["ev_t"].shape[len(lead)]
+
+    def write(ev):
+        return {key: ev[key].at[lead + (c["ev_row"],)].set(rows[key], mode="drop") for key in ev}
+
+    return out | jax.lax.cond(jnp.any(c["ev_row"] < capacity), write, lambda ev: ev, ev)
 
 
 def _ulp(t):
@@ -288,6 +431,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     graze_tol = jnp.asarray(graze_tol, dtype)
     release_tol = jnp.asarray(release_tol, dtype)
     N = int(max_impacts)
+    M = _event_capacity(N)
     m = int(event_samples)
     if ts is None:
         ts = jnp.zeros((0,), dtype)
@@ -323,13 +467,16 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     order = solver.error_order(term)
 
     def records0():
-        """The impact record (rows written by ``record``; NaN past the last impact)."""
+        """The impact record (N rows, "imp_" keys, written at ``rec_row``) and the contact
+        event record (M rows, "ev_" keys, written at ``ev_row``): NaN past the last row."""
         nan = jnp.asarray(jnp.nan, dtype)
         return dict(
             imp_t=jnp.full((N,), nan), imp_mask=jnp.zeros((N, k), bool),
             imp_x_pre=jnp.full((N, 2 * n), nan), imp_x_post=jnp.full((N, 2 * n), nan),
             imp_Psi_pre=jnp.full((N, k), nan), imp_Psi_post=jnp.full((N, k), nan),
             imp_mu=jnp.full((N, k), nan), imp_E_pre=jnp.full((N,), nan), imp_E_post=jnp.full((N,), nan),
+            ev_t=jnp.full((M,), nan), ev_rest=jnp.zeros((M, k), bool), ev_release=jnp.zeros((M, k), bool),
+            ev_x=jnp.full((M, 2 * n), nan),
         )
 
     def init(x0):
@@ -351,7 +498,13 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             t=t0, y=y0, h=h0, cstate=cstate, sstate=sstate, made_jump=jnp.zeros((), bool),
             persistent=persistent0, phase=zi, lo=t0, hi=t0, tau=t0, evset=jnp.zeros(k, bool), iters=zi,
             n_steps=zi, n_acc=zi, n_rej=zi, n_imp=zi, n_rel=zi, status=zi, t_prog=t0, stall=zi,
-            rec_row=jnp.asarray(N, jnp.int32), rec=jax.tree_util.tree_map(lambda a: a[0], records0()),
+            rec_row=jnp.asarray(N, jnp.int32),
+            # a start in resting contact is the first contact event (row 0, written after the
+            # first iteration, which keeps ev_row)
+            rec=dict(jax.tree_util.tree_map(lambda a: a[0], records0()), ev_t=t0, ev_rest=persistent0,
+                     ev_release=jnp.zeros(k, bool), ev_x=x0),
+            ev_row=jnp.where(jnp.any(persistent0), 0, M).astype(jnp.int32),
+            n_ev=jnp.any(persistent0).astype(jnp.int32),
             E_jumps=jnp.zeros((), dtype), rest_time=jnp.where(persistent0, t0, nan),
             release_time=jnp.full((k,), nan),
             min_gap=jnp.full((k,), jnp.inf, dtype), perm_res=jnp.zeros((), dtype),
@@ -449,9 +602,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         # N-row record stays out of the iteration's conditionals (under vmap, selects that
         # would copy it every iteration)
         out["rec_row"] = row.astype(jnp.int32)
+        rest_now = new_persistent & ~persistent
+        release_now = persistent & ~new_persistent
+        changed = jnp.any(rest_now | release_now)
         out["rec"] = dict(imp_t=t_star, imp_mask=hitting, imp_x_pre=x_star, imp_x_post=x_plus,
                           imp_Psi_pre=Psi, imp_Psi_post=Psi_post, imp_mu=mu_new, imp_E_pre=E_pre,
-                          imp_E_post=E_post)
+                          imp_E_post=E_post, ev_t=t_star, ev_rest=rest_now, ev_release=release_now, ev_x=x_plus)
+        out["ev_row"] = jnp.where(changed, c["n_ev"], M).astype(jnp.int32)  # M: dropped (none, or full)
+        out["n_ev"] = c["n_ev"] + changed.astype(jnp.int32)
         out["E_jumps"] = c["E_jumps"] + (E_post - E_pre)
         out["n_imp"] = c["n_imp"] + impact.astype(jnp.int32)
         out["n_rel"] = c["n_rel"] + jnp.sum(releasing).astype(jnp.int32)
@@ -467,7 +625,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         return out
 
     def body(c):
-        c = dict(c, rec_row=jnp.asarray(N, jnp.int32))
+        c = dict(c, rec_row=jnp.asarray(N, jnp.int32),
+                 ev_row=jnp.where(c["n_steps"] == 0, c["ev_row"], M).astype(jnp.int32))
         locate = c["phase"] == 1
         t = c["t"]
         persistent = c["persistent"]
@@ -501,6 +660,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         e_s = jnp.where(persistent[None, :], mus, gaps[1:])  # (m, k) event values
         tol = tolerances(persistent)
         below = e_s < -tol[None, :]
+        # A step that ends inside the graze band (-graze_tol <= psi < 0) of a contact still
+        # approaching (faster than rest_velocity) ended just past an impact: that is a
+        # crossing too, located in its last sample interval. Otherwise the next step would
+        # start past the root and the impact would be placed at that step's start, late by
+        # up to graze_tol / |Psi| (a flight that is a multiple of the largest step ends
+        # within round-off of its impact).
+        end_cross = ~persistent & (gaps[-1] < 0) & (rates[-1] < -rest_velocity)
+        below = below.at[-1].set(below[-1] | end_cross)
         any_j = jnp.any(below, axis=1)
         crossed = jnp.any(any_j)
         j = jnp.argmax(any_j)
@@ -537,7 +704,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         t_min, gaps_min = jax.lax.cond(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
         dipped = has_dip & (gaps_min[a_d] < -tol[a_d])
         found = crossed | dipped
-        lo = jnp.where(dipped, s_all[i_d], jnp.where(j == 0, t, s[jnp.maximum(j - 1, 0)]))
+        # The bracket's left end: the last sample before the first one below -graze_tol at
+        # which the crossing gaps are still >= 0 (samples between lie inside the graze band,
+        # already past the root: a bracket starting there would put the root at its left
+        # end, late by up to graze_tol / |Psi|); for multipliers, the previous sample.
+        free_fire = below[j] & ~persistent
+        on_side = jnp.all(jnp.where(free_fire[None, :], gaps >= 0, True), axis=1)  # (m + 1,) over s_all
+        idx = jnp.arange(m + 1)
+        lo = jnp.where(dipped, s_all[i_d], s_all[jnp.max(jnp.where(on_side & (idx <= j), idx, 0))])
         hi = jnp.where(dipped, t_min, s[j])
         evset0 = jnp.where(dipped, (gaps_min < -tol) & ~persistent, below[j])
 
@@ -631,8 +805,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         return (c["t"] < t1) & (c["status"] == 0) & (c["n_steps"] < max_steps)
 
     def record(records, c):
-        """Write the iteration's impact row (if any) into the record."""
-        return {key: records[key].at[c["rec_row"]].set(c["rec"][key], mode="drop") for key in records}
+        """Write the iteration's impact row and contact-event row (if any) into the records."""
+        return _write_rows(records, c["rec"], c)
 
     def finish_fields(c, x0):
         """The ``ImpactTrajectory`` fields other than the impact record."""
@@ -646,7 +820,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             t_final=c["t"], x_final=x_final, num_impacts=c["n_imp"],
             energy_jumps=c["E_jumps"], energy_error=energy_error,
             persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
-            num_releases=c["n_rel"],
+            num_releases=c["n_rel"], num_events=c["n_ev"],
             min_gap=c["min_gap"], constraint_residual=c["perm_res"], contact_residual=c["contact_res"],
             num_steps=c["n_steps"], num_accepted_steps=c["n_acc"], num_rejected_steps=c["n_rej"],
             status=status,
@@ -658,7 +832,8 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             x_pre=records["imp_x_pre"], x_post=records["imp_x_post"],
             normal_velocity_pre=records["imp_Psi_pre"], normal_velocity_post=records["imp_Psi_post"],
             impulses=records["imp_mu"], energy_pre=records["imp_E_pre"], energy_post=records["imp_E_post"],
-            n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
+            event_times=records["ev_t"], event_rest=records["ev_rest"], event_release=records["ev_release"],
+            event_states=records["ev_x"], n=n, state_names=tuple(getattr(system, "state_names", ()) or ()),
         )
 
     return dict(init=init, body=body, cond=cond, records0=records0, record=record,
@@ -722,6 +897,46 @@ def solve_impacts(
     else:
         raise ValueError(f"solve_impacts: adjoint must be 'forward' or 'reverse', got {adjoint!r}")
     return mc["finish"](mc["finish_fields"](c, x0), records)
+
+
+def _check_settings(owner, *, rtol=None, atol=None, dt0=None, dtmax=None, constraint_tol=None, **options):
+    """The settings of an impact solve, as ``simulate_impacts`` and the batches check them
+    (before any numerics): tolerances and steps finite and positive, the event thresholds
+    finite and >= 0, the budgets integers >= 1, no option ``solve_impacts`` does not take."""
+    unknown = sorted(set(options) - set(_SETTINGS) - {"t0", "solver", "adjoint"})
+    if unknown:
+        raise ParameterError(f"{owner}: unknown option(s) {unknown}; the impact solve takes "
+                             f"{', '.join(_SETTINGS)}, rtol, atol, dt0, dtmax, solver", unknown[0], None)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, constraint_tol=constraint_tol, owner=owner)
+    if dtmax is not None and not isinstance(dtmax, jax.core.Tracer):
+        positive("dtmax", dtmax, owner=owner, what="largest step [s]", as_float=np.ndim(dtmax) == 0)
+    for name, what in _SETTINGS.items():
+        v = options.get(name)
+        if v is None or isinstance(v, jax.core.Tracer):
+            continue
+        if what is int:
+            integer(name, v, minimum=1, owner=owner)
+        else:
+            positive(name, v, allow_zero=True, owner=owner, what=what, as_float=np.ndim(v) == 0)
+
+
+#: settings of ``solve_impacts`` checked by ``_check_settings``: budgets (int) and event
+#: thresholds (finite, >= 0)
+_SETTINGS = {"max_steps": int, "max_impacts": int, "event_samples": int, "locate_iterations": int,
+             "rest_velocity": "rebound normal velocity below which a contact rests",
+             "graze_tol": "gap below which a crossing counts [psi units]",
+             "release_tol": "multiplier below which a persistent contact is released"}
+
+
+def _as_states(x0, owner, xp=np):
+    """x0 as a float array (``xp``: numpy for host-side batches, jax.numpy for a solve),
+    or StateError naming it."""
+    if isinstance(x0, (str, bytes)) or x0 is None:
+        raise StateError(f"{owner}: x0 must be an array of real numbers (q, q'), got {x0!r}", "x0")
+    try:
+        return xp.asarray(x0, float)
+    except (TypeError, ValueError) as e:
+        raise StateError(f"{owner}: x0 must be an array of real numbers (q, q'): {e}", "x0") from None
 
 
 def _concrete(*trees) -> bool:
@@ -823,12 +1038,12 @@ def simulate_impacts(
     owner = "simulate_impacts"
     choice("on_max_impacts", on_max_impacts, ("raise", "stop"), owner=owner)
     choice("adjoint", adjoint, ("forward", "reverse"), owner=owner)
-    for name, v in (("max_impacts", max_impacts), ("max_steps", max_steps), ("event_samples", event_samples)):
-        integer(name, v, minimum=1, owner=owner)
-    solver_settings(rtol=rtol, atol=atol, dt0=dt0, constraint_tol=constraint_tol, owner=owner)
+    _check_settings(owner, max_impacts=max_impacts, max_steps=max_steps, event_samples=event_samples, rtol=rtol,
+                    atol=atol, dt0=dt0, dtmax=dtmax, constraint_tol=constraint_tol, rest_velocity=rest_velocity,
+                    graze_tol=graze_tol, release_tol=release_tol)
     t0, t1 = time_span(t0, t1, owner=owner)
     system = _with_contacts(system, unilateral, restitution)
-    x0 = jnp.asarray(x0, float)
+    x0 = _as_states(x0, owner, jnp)
     n = getattr(system, "n", None)
     if n is None or not hasattr(system, "dynamics_terms"):
         raise TypeError(
@@ -843,22 +1058,14 @@ def simulate_impacts(
     # and the solve and its derivatives are stored programs (nhjax._primitive)
     known = _primitive.has_values(system, x0, t0, t1)
     if known:
-        csys, cx0, ct0 = _primitive.concrete((system, x0, t0))
-        in_range("restitution", restitution_of(csys, k), 0.0, 1.0, owner=owner,
-                 what="coefficient of restitution of every contact")
-        if not np.all(np.isfinite(np.asarray(cx0))):
-            raise StateError(f"{owner}: initial state x0 contains NaN or inf; pass finite numbers", "x0")
-        psi0, res = _programs.call("impacts-start", _start_residuals, (csys, cx0, jnp.asarray(ct0, float)),
-                                   compiler_options=_programs.QUICK_OPTIONS)
-        psi0, res = np.asarray(psi0), np.asarray(res)
-        if np.any(psi0 < -constraint_tol):
-            a = int(np.argmin(psi0))
-            raise ConstraintViolationError(
-                f"unilateral[{a}]", float(-psi0[a]), constraint_tol,
-                "the initial configuration is on the forbidden side psi < 0",
-            )
-        if res.size and np.max(np.abs(res)) > constraint_tol:
-            raise ConstraintViolationError("permanent", float(np.max(np.abs(res))), constraint_tol)
+        csys, cx0, ct0, ct1 = _primitive.concrete((system, x0, t0, t1))
+        report = _programs.call("impacts-start", _start_report,
+                                (csys, cx0, jnp.asarray(ct0, float), jnp.asarray(ct1, float),
+                                 _boundary_samples(csys, ct0, ct1)), compiler_options=_programs.QUICK_OPTIONS)
+        failures = _start_failures(jax.tree_util.tree_map(lambda a: np.asarray(a)[None], report), 1,
+                                   constraint_tol, owner)
+        if failures:
+            raise failures[0][1][1]
     if saveat is None:
         saveat = 101
     if isinstance(saveat, (int, np.integer)) and not isinstance(saveat, bool) and saveat == 0:
@@ -1007,7 +1214,7 @@ def _lockstep_chunk_impl(system, x0, t1, n_members, sys_axes, x_axis, options, l
         c, go = jax.vmap(body_lane, in_axes=(0, -1), out_axes=(-1, 0))(safe(st["mem"]), st["c"])
         dest = jnp.where(go & (st["mem"] < n_members), st["mem"], M)  # out of range: dropped
         rows = first(c["rec"])
-        rec = {key: rec[key].at[dest, c["rec_row"]].set(rows[key], mode="drop") for key in rec}
+        rec = _write_rows(rec, rows, c, lead=(dest,))
         return dict(st, c=c), rec
 
     def run_lanes(args):
@@ -1048,49 +1255,68 @@ def _lockstep_chunk(*args):
 _lockstep_chunk_plain_jit = eqx.filter_jit(_lockstep_chunk_plain)
 
 
-def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lanes: int = 16, workers=None,
-                           saveat=0, **options) -> ImpactTrajectory:
-    """Many impact solves at once, by a lock-step loop with a member queue.
+class ImpactBatchTrajectory(MemberStatuses, ImpactTrajectory):
+    """The result of an impact batch (``simulate_impacts_batch``, or ``simulate_batch`` on
+    a system with one-sided constraints): every field of ``ImpactTrajectory`` with a
+    leading member axis, and the batch interface of ``simulate_batch``'s
+    ``BatchTrajectory`` (``nhjax.integrate.batch.MemberStatuses``).
 
-    The members are cut into chunks (default: one per worker), each a compiled program
-    run on its own thread (default: one per CPU core; XLA releases the GIL while a
-    compiled chunk runs). In a chunk ``lanes`` members step together (the event loop of
-    ``solve_impacts``, one iteration per lane and loop pass, each lane with its own step
-    size, impacts and contact modes); when a member ends, its lane takes the next member
-    of the chunk, so members that need many more iterations than others (chattering,
-    many impacts) do not hold the rest up. Each member's result is that of its own
-    ``solve_impacts`` (same steps, same root finds).
-
-    ``in_axes``: dict with keys "system" and "x0" (0 for batched along axis 0, None for
-    shared). For the system also a list of field names whose arrays carry the member
-    axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
-    to vary only the amplitude, or a pytree of axes.
-    Default: x0 batched if it is 2-D, the system shared. ``chunk_size``: most members per
-    compiled chunk (the batch is split into at least one chunk per worker). ``lanes``: members
-    stepped together per chunk. ``saveat``: 0 (nothing saved, default) or an int / 1-D
-    array of save times as in ``simulate_impacts``; other keyword arguments are
-    ``solve_impacts``'s. No exceptions: every member's ``status`` says how it ended.
-    Returns an ``ImpactTrajectory`` whose fields have a leading member axis.
+    status : codes into ``STATUS``: 0 "success" (reached t1), 1 "max_impacts", 2
+        "max_steps", 3 "nonfinite", 4 "stalled", 5 "bad input" (the member's start or
+        parameters failed the checks of ``simulate_impacts``; not solved: its numbers are
+        NaN, its counts 0, its ``t_final`` t0).
+    reasons : member -> text, for every member that did not reach t1.
+    Masks ``ok`` (reached t1), ``stopped`` (ended at max_impacts with
+    ``on_max_impacts="stop"``), ``failed`` (anything else); ``status_names()``,
+    ``counts()``, ``summary()``.
     """
-    import os
-    from concurrent.futures import ThreadPoolExecutor
 
-    owner = "simulate_impacts_batch"
-    _, t1 = time_span(options.get("t0", 0.0), t1, owner=owner)
-    if chunk_size is not None:
-        chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
-    lanes = integer("lanes", lanes, minimum=1, owner=owner)
-    if saveat != 0:
-        check_saveat(saveat, options.get("t0", 0.0), t1, owner=owner)
-    solver_settings(rtol=options.get("rtol"), atol=options.get("atol"), dt0=options.get("dt0"), owner=owner)
-    try:
-        x0 = jnp.asarray(x0, float)
-    except (TypeError, ValueError) as e:
-        raise StateError(f"{owner}: x0 must be an array of real numbers: {e}", "x0") from None
-    if not np.all(np.isfinite(np.asarray(x0))):
-        raise StateError(f"{owner}: x0 contains NaN or inf; pass finite numbers", "x0")
+    reasons: dict = eqx.field(static=True, default_factory=dict)
+    stop_codes: tuple = eqx.field(static=True, default=())
+
+    STATUS_NAMES = tuple(STATUS[i] for i in range(len(STATUS)))
+
+    @property
+    def stopped(self):
+        return np.isin(np.asarray(self.status), self.stop_codes)
+
+    def summary(self, show: int = 8) -> str:
+        """How many members reached t1, which did not and why, and the spread of impacts,
+        steps and accuracy diagnostics over the members that did."""
+        ok = self.ok | self.stopped
+        lines = [f"{len(self)} members: " + ", ".join(f"{k} {v}" for k, v in self.counts().items())]
+        if ok.any():
+            for label, v in (("impacts", self.num_impacts), ("steps (accepted)", self.num_accepted_steps)):
+                v = np.asarray(v)[ok]
+                lines.append(f"  {label} (members that ran): min {v.min()}, median {int(np.median(v))}, max {v.max()}")
+            for label, v in (("energy bookkeeping error", np.abs(np.asarray(self.energy_error))),
+                             ("permanent-constraint residual", np.asarray(self.constraint_residual)),
+                             ("contact residual", np.asarray(self.contact_residual))):
+                lines.append(f"  {label}: max {v[ok].max():.2e} (median {np.median(v[ok]):.2e})")
+            lines.append(f"  smallest gap: {np.asarray(self.min_gap)[ok].min():.3g}")
+        return "\n".join(lines + self._reason_lines(show))
+
+
+def _batch_axes(system, x0, in_axes, owner):
+    """(system axes pytree, x0 axis, batch size) from ``in_axes`` (see
+    ``simulate_impacts_batch``), with x0's shape checked against the system's (q, q')."""
     in_axes = dict(in_axes or {})
+    unknown = set(in_axes) - {"system", "x0"}
+    if unknown:
+        raise ParameterError(f"{owner}: in_axes keys must be among 'system', 'x0'; got {sorted(unknown)}",
+                             "in_axes", in_axes)
     x_axis = in_axes.get("x0", 0 if x0.ndim == 2 else None)
+    if x_axis not in (0, None):
+        raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis!r}", "in_axes", in_axes)
+    n = getattr(system, "n", None)
+    if n is None or not hasattr(system, "dynamics_terms"):
+        raise TypeError(f"{owner} needs a ConstrainedLagrangian (mass matrix, permanent constraints and contact "
+                        f"multipliers by autodiff), got {type(system).__name__}")
+    want = (2 * n,) if x_axis is None else (x0.shape[0] if x0.ndim else 0, 2 * n)
+    if x0.shape != want or (x_axis == 0 and x0.ndim != 2):
+        per = f"({2 * n},) shared by every member" if x_axis is None else f"(members, {2 * n}), one row per member"
+        raise StateError(f"{owner}: x0 has shape {x0.shape}; {type(system).__name__} expects (q, q') of shape {per} "
+                         "(in_axes['x0'] says which): pass the positions and then the velocities", "x0")
     sys_axes = in_axes.get("system", None)
     if isinstance(sys_axes, (list, tuple)) and all(isinstance(nm, str) for nm in sys_axes):
         names = tuple(sys_axes)
@@ -1110,98 +1336,220 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
         sizes.add(x0.shape[x_axis])
     for a, ax in zip(jax.tree_util.tree_leaves(system), jax.tree_util.tree_leaves(sys_axes, is_leaf=lambda a: a is None)):
         if ax is not None:
-            sizes.add(jnp.shape(a)[ax])
+            if not np.ndim(a):
+                raise ParameterError(f"{owner}: a batched field of {type(system).__name__} is a scalar: every "
+                                     "batched field needs the member axis first", "in_axes", in_axes)
+            sizes.add(np.shape(a)[ax])
     if len(sizes) != 1:
         raise ParameterError(f"{owner}: batched inputs must share one batch size; got sizes {sorted(sizes)} "
                              "(check in_axes: which of system / x0 carry a leading member axis)", "in_axes", in_axes)
-    B = sizes.pop()
+    return sys_axes, x_axis, sizes.pop()
+
+
+def _members_of(system, x0, sys_axes, x_axis, idx):
+    """Members ``idx`` (host-side numpy indexing) of the batched parts of system and x0."""
+    s = jax.tree_util.tree_map(lambda a, ax: a if ax is None else np.asarray(a)[idx], system, sys_axes,
+                               is_leaf=lambda a: a is None)
+    return s, (x0 if x_axis is None else np.asarray(x0)[idx])
+
+
+def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lanes: int = 16, workers=None,
+                           saveat=0, on_error: str = "raise", on_max_impacts: str = "raise",
+                           constraint_tol: float = 1e-8, **options) -> ImpactBatchTrajectory:
+    """Many impact solves at once, by a lock-step loop with a member queue.
+
+    Before any solve, every member's start and parameters get the checks of
+    ``simulate_impacts`` (all members at once, one program): x0 finite, restitution in
+    [0, 1], no moving boundary degenerating in [t0, t1], psi(t0, q0) >= -constraint_tol,
+    the permanent constraints met. A check that fails on shared inputs (not batched)
+    raises the named error ``simulate_impacts`` raises; a member that fails one is not
+    solved: status "bad input" and its reason in ``reasons``.
+
+    The members are cut into chunks (default: one per worker), each a compiled program
+    run on its own thread (default: one per CPU core; XLA releases the GIL while a
+    compiled chunk runs). In a chunk ``lanes`` members step together (the event loop of
+    ``solve_impacts``, one iteration per lane and loop pass, each lane with its own step
+    size, impacts and contact modes); when a member ends, its lane takes the next member
+    of the chunk, so members that need many more iterations than others (chattering,
+    many impacts) do not hold the rest up. Each member's result is that of its own
+    ``solve_impacts`` (same steps, same root finds).
+
+    ``in_axes``: dict with keys "system" and "x0" (0 for batched along axis 0, None for
+    shared). For the system also a list of field names whose arrays carry the member
+    axis, e.g. ``{"system": ["A"]}`` with ``eqx.tree_at(lambda s: s.A, ball, amplitudes)``
+    to vary only the amplitude, or a pytree of axes.
+    Default: x0 batched if it is 2-D, the system shared. ``chunk_size``: most members per
+    compiled chunk (the batch is split into at least one chunk per worker). ``lanes``: members
+    stepped together per chunk. ``saveat``: 0 (nothing saved, default) or an int / 1-D
+    array of save times as in ``simulate_impacts``; other keyword arguments are
+    ``solve_impacts``'s (default rtol = atol = 1e-10, as ``simulate_impacts``).
+
+    ``on_error``: "raise" (default: ``BatchError`` naming the members with bad inputs,
+    before anything is solved, or whose solve failed) or "return" (a sweep: nothing
+    raises, every member's status and reason are in the result). ``on_max_impacts``:
+    "raise" (reaching max_impacts is a failure, as in ``simulate_impacts``) or "stop"
+    (the member ends there: ``stopped``, e.g. to record a fixed number of impacts).
+    Returns an ``ImpactBatchTrajectory``: the fields of ``ImpactTrajectory`` with a
+    leading member axis, and ``status``, ``reasons``, ``ok``, ``summary()``.
+    """
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    owner = "simulate_impacts_batch"
+    choice("on_error", on_error, ("raise", "return"), owner=owner)
+    choice("on_max_impacts", on_max_impacts, ("raise", "stop"), owner=owner)
+    t0 = options.get("t0", 0.0)
+    t0, t1 = time_span(t0, t1, owner=owner)
+    if chunk_size is not None:
+        chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
+    lanes = integer("lanes", lanes, minimum=1, owner=owner)
+    if not (isinstance(saveat, (int, np.integer)) and not isinstance(saveat, bool) and saveat == 0):
+        check_saveat(saveat, t0, t1, owner=owner)
+    _check_settings(owner, constraint_tol=constraint_tol, **options)
+    options = {k_: int(v) if _SETTINGS.get(k_) is int else v for k_, v in options.items()}
+    x0 = _as_states(x0, owner)
+    sys_axes, x_axis, B = _batch_axes(system, x0, in_axes, owner)
+    k = _num_contacts(system, t0, jnp.zeros(2 * system.n))
+    del k  # (a system without one-sided constraints is refused there)
+
+    # -- every member's start, checked at once (one program) before any solve
+    sys0 = _members_of(system, x0, sys_axes, x_axis, 0)[0]
+    n_samples = _boundary_samples(sys0, t0, t1)
+    report = _programs.call("impacts-start-batch", _start_report_batch,
+                            (system, x0, jnp.asarray(t0, float), jnp.asarray(t1, float), n_samples, sys_axes,
+                             x_axis), compiler_options=_programs.QUICK_OPTIONS)
+    batched = (any(ax is not None for ax in jax.tree_util.tree_leaves(sys_axes)), x_axis is not None)
+    failures = _start_failures(report, B, float(constraint_tol), owner, batched)
+    reasons = {j: why for j, (why, _) in failures}
+    if failures and on_error == "raise":
+        members = [j for j, _ in failures]
+        raise BatchError("bad inputs", members, [reasons[j] for j in members], [float(t0)] * len(members))
+    good = np.setdiff1d(np.arange(B), np.asarray(list(reasons), int))
+
     if isinstance(saveat, (int, np.integer)):
-        ts = None if saveat == 0 else jnp.asarray(np.linspace(float(options.get("t0", 0.0)), float(t1), int(saveat)),
-                                                  float)
+        ts = None if saveat == 0 else jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)), float)
     else:
         ts = jnp.asarray(saveat, float)
     if "dtmax" not in options:
-        sys0 = jax.tree_util.tree_map(lambda a, ax: a if ax is None else jnp.take(a, 0, axis=ax),
-                                      system, sys_axes, is_leaf=lambda a: a is None)
         options["dtmax"] = getattr(sys0, "event_resolution", None)
-    opts = {k: (jnp.asarray(v, float) if isinstance(v, float) else v) for k, v in options.items()}
+    opts = {k_: (jnp.asarray(v, float) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
-    if x_axis not in (0, None):
-        raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis}", "in_axes", in_axes)
     workers = int(workers or os.cpu_count() or 1)
-    chunk = -(-B // workers)  # at least one chunk per worker
-    if chunk_size is not None:
-        chunk = min(chunk, chunk_size)
-    chunk = int(max(1, min(chunk, B)))
-    starts = list(range(0, B, chunk))
     t1a = jnp.asarray(t1, float)
 
-    # Members are dealt to the chunks in turn (chunk j: members j, j + W, ...): a sweep over a
-    # sorted parameter has its slow members (chattering, many impacts) side by side, and
-    # contiguous chunks would give one worker most of them.
-    W = len(starts)
-    perm = np.concatenate([np.arange(j, B, W) for j in range(W)])
+    def run_members(system, x0, B):
+        """Solve the B members of system / x0 (all of them good) in chunks."""
+        chunk = -(-B // workers)  # at least one chunk per worker
+        if chunk_size is not None:
+            chunk = min(chunk, chunk_size)
+        chunk = int(max(1, min(chunk, B)))
+        starts = list(range(0, B, chunk))
+        # Members are dealt to the chunks in turn (chunk j: members j, j + W, ...): a sweep over a
+        # sorted parameter has its slow members (chattering, many impacts) side by side, and
+        # contiguous chunks would give one worker most of them.
+        W = len(starts)
+        perm = np.concatenate([np.arange(j, B, W) for j in range(W)])
 
-    def members(lo):
-        """Chunk members perm[lo .. lo+chunk-1] (host-side numpy; a short last chunk is padded
-        with copies of its last member, which are not solved)."""
-        idx = perm[np.minimum(np.arange(lo, lo + chunk), B - 1)]
-        s = jax.tree_util.tree_map(lambda a, ax: a if ax is None else np.asarray(a)[idx], system, sys_axes,
-                                   is_leaf=lambda a: a is None)
-        x = x0 if x_axis is None else np.asarray(x0)[idx]
-        return s, x, np.int32(min(chunk, B - lo))
+        def run(lo):
+            # chunk members perm[lo .. lo+chunk-1]; a short last chunk is padded with copies of
+            # its last member, which are not solved
+            s, x = _members_of(system, x0, sys_axes, x_axis, perm[np.minimum(np.arange(lo, lo + chunk), B - 1)])
+            return jax.device_get(_lockstep_chunk(s, x, t1a, np.int32(min(chunk, B - lo)), sys_axes, x_axis, opts,
+                                                  lanes))
 
-    def run(lo):
-        s, x, nm = members(lo)
-        return jax.device_get(_lockstep_chunk(s, x, t1a, nm, sys_axes, x_axis, opts, lanes))
+        first = run(starts[0])  # compile once, then the rest concurrently
+        with ThreadPoolExecutor(max_workers=workers) as pool:
+            rest = list(pool.map(run, starts[1:]))
+        sizes_ = [min(chunk, B - lo) for lo in starts]
+        inv = np.argsort(perm)
+        return jax.tree_util.tree_map(
+            lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)])[inv],
+            *[eqx.partition(o, eqx.is_array)[0] for o in [first] + rest])
 
-    first = run(starts[0])  # compile once, then the rest concurrently
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        rest = list(pool.map(run, starts[1:]))
-    outs = [first] + rest
-    sizes_ = [min(chunk, B - lo) for lo in starts]
-    _, static = eqx.partition(outs[0], eqx.is_array)
-    inv = np.argsort(perm)
-    merged = jax.tree_util.tree_map(
-        lambda *a: np.concatenate([np.asarray(x)[:sz] for x, sz in zip(a, sizes_)])[inv],
-        *[eqx.partition(o, eqx.is_array)[0] for o in outs])
-    return eqx.combine(jax.tree_util.tree_map(jnp.asarray, merged), static)
+    if good.size:
+        solved = run_members(*_members_of(system, x0, sys_axes, x_axis, good), good.size)
+        if good.size < B:
+            solved = jax.tree_util.tree_map(lambda a: _scatter(a, good, B), solved)
+    else:  # nothing to solve: the fields' shapes without a solve
+        settings = {k_: v for k_, v in options.items() if k_ in _SETTINGS or k_ in ("solver", "dtmax")}
+        shape = jax.eval_shape(lambda: _solve_plain(
+            sys0, jnp.zeros(2 * system.n), t1a, jnp.asarray(t0, float), ts, settings.get("solver"), 1e-10, 1e-10,
+            None, settings.get("dtmax"), settings.get("max_steps", 100_000), settings.get("max_impacts", 1000), 1e-6,
+            1e-12, 1e-10, settings.get("event_samples", 4), "forward"))
+        solved = {k_: _scatter(np.zeros(v.shape, v.dtype)[None], np.zeros(0, int), B) for k_, v in shape.items()}
+    return _impact_statuses(solved, reasons, system, t0, on_error, on_max_impacts,
+                            int(options.get("max_impacts", 1000)), int(options.get("max_steps", 100_000)))
+
+
+def _scatter(a, rows, B):
+    """A (B, ...) array with ``a``'s rows at ``rows`` and the other members' rows empty:
+    NaN (floats), 0 (integers), False."""
+    a = np.asarray(a)
+    fill = np.nan if np.issubdtype(a.dtype, np.floating) else 0
+    out = np.full((B,) + a.shape[1:], fill, a.dtype)
+    out[rows] = a[: len(rows)]
+    return out
+
+
+def _impact_statuses(fields, reasons, system, t0, on_error, on_max_impacts, max_impacts, max_steps):
+    """The batch result from the members' fields (numpy, leading member axis; members in
+    ``reasons`` were not solved), with a reason for every member that did not reach t1;
+    raises BatchError for failed members when ``on_error="raise"``."""
+    fields = {k: np.asarray(v) for k, v in (fields.items() if isinstance(fields, dict) else
+                                             ((f, getattr(fields, f)) for f in _FIELDS))}
+    bad = np.zeros(len(fields["status"]), bool)
+    bad[list(reasons)] = True
+    fields["status"] = np.where(bad, BAD_INPUT, fields["status"]).astype(np.int32)
+    fields["t_final"] = np.where(bad, float(t0), fields["t_final"])
+    reasons = dict(reasons)
+    stop = (1,) if on_max_impacts == "stop" else ()
+    for j in np.nonzero(~bad & (fields["status"] != 0))[0]:
+        code = int(fields["status"][j])
+        reasons[int(j)] = (f"stopped after max_impacts={max_impacts} impacts" if code in stop
+                           else _STATUS_MSG[code].format(N=max_impacts, S=max_steps))
+    traj = ImpactBatchTrajectory(**{k: jnp.asarray(v) for k, v in fields.items()}, n=system.n,
+                                 state_names=tuple(getattr(system, "state_names", ()) or ()), reasons=reasons,
+                                 stop_codes=stop)
+    failed = np.nonzero(traj.failed)[0].tolist()
+    if on_error == "raise" and failed:
+        raise BatchError("failed solves", failed, [reasons[m] for m in failed],
+                         [float(np.asarray(traj.t_final)[m]) for m in failed], traj)
+    return traj
 
 
 def simulate_batch_impacts(system, x0, t1, *, t0=0.0, control=None, in_axes=None, chunk_size: int = 8192,
-                           lanes=None, workers=None, progress=None, saveat=2, solver=None, rtol: float = 1e-8,
-                           atol: float = 1e-8, dt0=None, max_steps=None, stepsize_controller=None, jump_ts=None,
+                           lanes=None, workers=None, progress=None, saveat=2, solver=None, rtol=None,
+                           atol=None, dt0=None, max_steps=None, stepsize_controller=None, jump_ts=None,
                            adjoint=None, project: bool = False, project_steps=None, constraint_tol: float = 1e-8,
                            on_guard: str = "raise", on_error: str = "raise", track_work=None,
-                           diagnostics: bool = True, **impact_options) -> ImpactTrajectory:
+                           diagnostics: bool = True, **impact_options) -> ImpactBatchTrajectory:
     """``simulate_batch``'s signature for systems with one-sided constraints (those that
     define ``unilateral_constraints``): the lock-step impact batch
     (``simulate_impacts_batch``). ``in_axes`` takes ``simulate_batch``'s {"system": 0 /
-    None, "x0": 0 / None}; ``saveat``, ``rtol``, ``atol``, ``dt0``, ``solver``,
-    ``max_steps``, ``chunk_size``, ``lanes``, ``workers`` mean what they mean there;
-    further keyword arguments (``max_impacts``, ``rest_velocity``, ...) are
-    ``solve_impacts``'s. Returns an ``ImpactTrajectory`` with a leading member axis (its
-    ``status`` per member; nothing raises for a failed member). Arguments without a meaning
-    for impacts (controls, adjoints, jump times, projection, a custom step-size controller)
-    raise a ValueError naming them."""
+    None, "x0": 0 / None}; ``saveat``, ``rtol``, ``atol`` (default 1e-10, as
+    ``simulate_impacts``), ``dt0``, ``solver``, ``max_steps``, ``chunk_size``, ``lanes``,
+    ``workers``, ``constraint_tol`` and ``on_error`` mean what they mean there; further
+    keyword arguments (``max_impacts``, ``on_max_impacts``, ``rest_velocity``, ...) are
+    ``simulate_impacts_batch``'s. Returns an ``ImpactBatchTrajectory`` (per-member
+    ``status`` and ``reasons``, ``ok``, ``summary()``). Arguments without a meaning for
+    impacts (controls, adjoints, jump times, projection, a custom step-size controller)
+    raise a ParameterError naming them."""
     owner = "simulate_batch (a system with one-sided constraints)"
     unsupported = dict(control=control, stepsize_controller=stepsize_controller, jump_ts=jump_ts,
                        adjoint=adjoint, project_steps=project_steps)
     for name, v in unsupported.items():
         if v is not None:
-            raise ValueError(f"{owner}: {name}={v!r} is not supported for impact systems; leave it None "
-                             "(or call nhjax.simulate_impacts_batch directly)")
+            raise ParameterError(f"{owner}: {name}={v!r} is not supported for impact systems; leave it None "
+                                 "(or call nhjax.simulate_impacts_batch directly)", name, v)
     if project:
-        raise ValueError(f"{owner}: project=True is not supported for impact systems; persistent contacts "
-                         "are projected by the event loop itself")
+        raise ParameterError(f"{owner}: project=True is not supported for impact systems; persistent contacts "
+                             "are projected by the event loop itself", "project", project)
     choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
-    choice("on_error", on_error, ("raise", "return"), owner=owner)
     axes = {"x0": 0} if in_axes is None else dict(in_axes)
-    unknown = set(axes) - {"system", "x0"}
-    if unknown:
-        raise ValueError(f"{owner}: in_axes keys must be among 'system', 'x0'; got {sorted(unknown)}")
-    opts = dict(impact_options, t0=t0, rtol=rtol, atol=atol, dt0=dt0, solver=solver)
+    opts = dict(impact_options, t0=t0, rtol=1e-10 if rtol is None else rtol, atol=1e-10 if atol is None else atol,
+                dt0=dt0, solver=solver)
     if max_steps is not None:
-        opts["max_steps"] = int(max_steps)
+        opts["max_steps"] = max_steps
     return simulate_impacts_batch(system, x0, t1, in_axes=axes, chunk_size=chunk_size,
-                                  lanes=16 if lanes is None else lanes, workers=workers, saveat=saveat, **opts)
+                                  lanes=16 if lanes is None else lanes, workers=workers, saveat=saveat,
+                                  on_error=on_error, constraint_tol=constraint_tol, **opts)

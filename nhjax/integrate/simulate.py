@@ -35,6 +35,7 @@ import optimistix as optx
 
 from .. import _primitive, _programs
 from .._validate import (
+    as_state,
     check_control,
     check_saveat,
     check_state,
@@ -53,7 +54,6 @@ from ..errors import (
     ChartSingularityError,
     IntegrationError,
     ParameterError,
-    StateError,
     TimeSpanError,
 )
 from ..lie.spaces import Euclidean, is_space
@@ -870,10 +870,7 @@ def simulate(
     # eager call, and the solve and its derivatives are stored programs (nhjax._primitive);
     # only under jit or vmap is the call traced
     traced = differentiated and not _primitive.has_values(numbers)
-    try:
-        x0 = jtu.tree_map(lambda a: jnp.asarray(a, dtype=float), x0)
-    except (TypeError, ValueError) as e:
-        raise StateError(f"simulate: x0 must be an array (or a pytree of arrays) of real numbers: {e}") from None
+    x0 = as_state(system, x0, owner="simulate")
     simulate_memory(system, x0, saveat, stores_steps=differentiated and isinstance(adjoint, DiscreteAdjoint),
                     max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
     # An eager call with the program cache on starts every program it needs before it

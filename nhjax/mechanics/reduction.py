@@ -89,6 +89,7 @@ with their own singularities add guards the same way.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -97,10 +98,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _primitive
+from .. import _primitive, _programs
 from .._primitive import stored as _stored
 from .. import _validate as V
-from ..errors import ParameterError
+from ..errors import ParameterError, StateError
 from ..lie import se2, so3
 from ..lie.spaces import Euclidean, SO3Body
 from .system import AbstractSystem
@@ -334,21 +335,14 @@ def _symmetry(group):
 # ---------------------------------------------------------------------------- bodies
 def _check_inertias(J, given):
     """Planar moments >= 0; spatial tensors symmetric positive semidefinite (zero: a
-    point mass; the kinetic energy is then >= 0, as for ``RigidBody``)."""
+    point mass; the kinetic energy is then >= 0, as for ``RigidBody``) with principal
+    moments that obey the triangle inequality (``nhjax._validate.inertias``)."""
     if J.ndim == 1:
         if not np.all(J >= 0):
             raise ParameterError(f"Bodies: inertias must be non-negative [kg m^2], got {J.tolist()}",
                                  "inertias", given)
         return
-    scale = max(float(np.abs(J).max()), 1e-300)
-    for i, Ji in enumerate(J):
-        if not np.allclose(Ji, Ji.T, rtol=0.0, atol=1e-12 * scale):
-            raise ParameterError(f"Bodies: inertias[{i}] must be symmetric, got {Ji.tolist()}", "inertias", given)
-        ev = np.linalg.eigvalsh(0.5 * (Ji + Ji.T))
-        if ev[0] < -1e-12 * scale:
-            raise ParameterError(
-                f"Bodies: inertias[{i}] must be positive semidefinite (a rigid body, or zero for a point "
-                f"mass), got principal moments {ev.tolist()}", "inertias", given)
+    V.inertias("inertias", J, owner="Bodies", allow_zero=True)
 
 
 class Bodies(eqx.Module):
@@ -424,6 +418,56 @@ def _vec_arg(name, value, n, owner, what):
     return a.reshape(-1)
 
 
+def _geometry(name, *params):
+    """``@_stored(name)`` (one stored program on known values) with the method's
+    arguments checked first by ``_check_geometry``: a wrong number of shape coordinates,
+    a state of another system, NaN, are named before anything runs. ``params``: the
+    (name, kind) of each argument. The checks of shapes are static, so they hold while
+    traced too (inside a solve they add nothing to the program)."""
+
+    def decorate(fn):
+        stored = _stored(name)(fn)
+
+        @functools.wraps(fn)
+        def method(self, *args):
+            _check_geometry(self, fn.__name__, params, args)
+            return stored(self, *args)
+
+        method.plain = fn
+        return method
+
+    return decorate
+
+
+def _check_geometry(system, method, params, args):
+    """Check the arguments of a reduction helper; kinds: "r" (shape coordinates, (k,)),
+    "rdd" (shape accelerations, (k,)), "u" (inputs, (n_inputs,); None allowed), "x" (a
+    state of ``system``: its structure, the group part's shape, the flat part's length).
+    Known values must be finite. ParameterError / StateError naming the argument."""
+    owner = f"{type(system).__name__}.{method}"
+    for (pname, kind), a in zip(params, args):
+        if kind == "u" and a is None:
+            continue
+        if kind == "x":
+            system._state_arg(a, pname, owner)
+            continue
+        size, what = ((system.n_inputs, "inputs") if kind == "u" else
+                      (system.k, "shape accelerations" if kind == "rdd" else "shape coordinates"))
+        shape = np.shape(a) if hasattr(a, "shape") else None
+        if shape is None:
+            try:
+                shape = np.shape(np.asarray(a, float))
+            except (TypeError, ValueError):
+                raise ParameterError(f"{owner}: {pname} must be an array of {size} real numbers ({what}), "
+                                     f"got {a!r}", pname, a) from None
+        if tuple(shape) != (size,):
+            names = f" {system.shape_names}" if kind != "u" else ""
+            raise ParameterError(f"{owner}: {pname} must have shape ({size},): {size} {what}{names} of "
+                                 f"{type(system).__name__}, got shape {tuple(shape)}", pname, a)
+        if not isinstance(a, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(a, float))):
+            raise ParameterError(f"{owner}: {pname} contains NaN or inf ({what}); pass finite numbers", pname, a)
+
+
 class _ShapeForces(eqx.Module):
     """Default inputs: one generalized force per shape coordinate (joint torques)."""
 
@@ -473,6 +517,7 @@ class ReducedSystem(AbstractSystem):
     large_vector_field: ClassVar[bool] = True
     regularity_hints: ClassVar[dict] = _REG_HINTS
     guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT, "collinear": _LOCKED_HINT}
+    guard_arguments: ClassVar[dict] = {"locked_inertia": "shape", "collinear": "shape"}
 
     def __init__(self, bodies, shape_map, group, shape_dim, *, momentum=None, inputs=None,
                  control_dim=None, shape_names=None, chart_guard=None, guard_eps=1e-6):
@@ -629,6 +674,30 @@ class ReducedSystem(AbstractSystem):
                                  f"got shape {tuple(r.shape)}", name, value)
         return r.reshape(-1)
 
+    def _state_arg(self, x, name, owner):
+        """A state of this system: (R, flat) for SO(3)/SE(3), else flat; the flat part with
+        one entry per name of ``flat_names``; finite where its values are known. StateError."""
+        want = len(self.flat_names)
+        layout = (f"(R, flat) with R 3x3 and flat of {want} entries {self.flat_names}" if self.symmetry.matrix
+                  else f"a flat array of {want} entries {self.flat_names}")
+        parts = x if self.symmetry.matrix and isinstance(x, (tuple, list)) and len(x) == 2 else (
+            None if self.symmetry.matrix else (x,))
+        shapes = None if parts is None else [np.shape(p) if hasattr(p, "shape") else None for p in parts]
+        if parts is not None and any(sh is None for sh in shapes):
+            try:
+                shapes = [np.shape(np.asarray(p, float)) for p in parts]
+            except (TypeError, ValueError):
+                shapes = None
+        ok = shapes is not None and tuple(shapes[-1]) == (want,) and (
+            not self.symmetry.matrix or tuple(shapes[0]) == (3, 3))
+        if not ok:
+            got = "something else" if shapes is None else ", ".join(f"shape {tuple(sh)}" for sh in shapes)
+            raise StateError(f"{owner}: {name} must be a state of {type(self).__name__}: {layout}; got {got}. "
+                             f"Build it with {type(self).__name__}.initial_state(...)", name)
+        if not any(isinstance(p, jax.core.Tracer) for p in parts) and not all(
+                np.all(np.isfinite(np.asarray(p, float))) for p in parts):
+            raise StateError(f"{owner}: {name} contains NaN or inf; pass finite numbers", name)
+
     def _group_arg(self, group, owner):
         """(R, c) of the group element: identity by default; (R, c) or R for SO(3)/SE(3),
         with R checked on SO(3); else the flat coordinates (angle / x, y, angle)."""
@@ -719,33 +788,33 @@ class ReducedSystem(AbstractSystem):
         w = self._vel(S, Sd, v[:d])
         return 0.5 * self._form(w, w)
 
-    @_stored("reduction.metric")
+    @_geometry("reduction.metric", ("r", "r"))
     def metric(self, r):
         """G(r) = d^2 l / dv^2: the kinetic metric in v = (xi, r') [(d + k) x (d + k)]."""
         V = self._columns(*self._poses_and_jacobian(r))
         return self._gram(V, V)
 
-    @_stored("reduction.locked_inertia")
+    @_geometry("reduction.locked_inertia", ("r", "r"))
     def locked_inertia(self, r):
         """I(r), the locked inertia in the reference frame (seed 000 (3.9), seed 001 (6))."""
         d = self.symmetry.dim
         return self.metric(r)[:d, :d]
 
-    @_stored("reduction.connection")
+    @_geometry("reduction.connection", ("r", "r"))
     def connection(self, r):
         """A(r) = I^-1 B (d x k), the local mechanical connection: xi = -A r' + I^-1 mu."""
         d = self.symmetry.dim
         G = self.metric(r)
         return jnp.linalg.solve(G[:d, :d], G[:d, d:])
 
-    @_stored("reduction.reduced_metric")
+    @_geometry("reduction.reduced_metric", ("r", "r"))
     def reduced_metric(self, r):
         """M(r) = G_rr - A^T I A (k x k), the vibrational metric (seed 000 (4.7), seed 001 (10))."""
         d = self.symmetry.dim
         G = self.metric(r)
         return G[d:, d:] - G[d:, :d] @ jnp.linalg.solve(G[:d, :d], G[:d, d:])
 
-    @_stored("reduction.curvature")
+    @_geometry("reduction.curvature", ("r", "r"))
     def curvature(self, r):
         """F (d, k, k): F[:, i, j] = d_i A_j - d_j A_i - [A_i, A_j] (module docstring)."""
         A = self.connection(r)
@@ -754,7 +823,7 @@ class ReducedSystem(AbstractSystem):
         br = jax.vmap(lambda ai: jax.vmap(lambda aj: self.symmetry.ad(ai) @ aj)(A.T))(A.T)  # [i, j, a]
         return ext - jnp.moveaxis(br, 2, 0)
 
-    @_stored("reduction.rotational_inertia")
+    @_geometry("reduction.rotational_inertia", ("r", "r"))
     def rotational_inertia(self, r):
         """Inertia about the centre of mass of the locked system [kg m^2]: 3x3 (spatial)
         or scalar (planar)."""
@@ -767,7 +836,7 @@ class ReducedSystem(AbstractSystem):
                 "n,ni,nj->ij", m, y, y)
         return jnp.sum(self.bodies.inertias) + jnp.sum(m * jnp.sum(y * y, -1))
 
-    @_stored("reduction.inertia_condition")
+    @_geometry("reduction.inertia_condition", ("r", "r"))
     def inertia_condition(self, r):
         """Normalized determinant of the rotational locked inertia about the centre of
         mass: 1 for a spherical inertia, 0 where the group stops acting freely
@@ -812,7 +881,7 @@ class ReducedSystem(AbstractSystem):
             return jnp.zeros(self.symmetry.dim, r.dtype)
         return m if self.momentum == "body" else self.symmetry.to_body(R, c, m)
 
-    @_stored("reduction.group_velocity")
+    @_geometry("reduction.group_velocity", ("x", "x"))
     def group_velocity(self, x):
         """xi = g^-1 g' = -A(r) r' + I(r)^-1 mu  (seed 001 (8))."""
         _, _, r, rd, _ = self.split(x)
@@ -858,7 +927,7 @@ class ReducedSystem(AbstractSystem):
         rhs = tau_r + dl_dr - Dp[d:] - A.T @ (mu_dot - Dp[:d])
         return xi, jnp.linalg.solve(M, rhs), mu_dot, tau_xi
 
-    @_stored("reduction.shape_accelerations")
+    @_geometry("reduction.shape_accelerations", ("x", "x"), ("u", "u"))
     def shape_accelerations(self, x, u=None):
         """r'' at state x under inputs u."""
         _, _, r, rd, _ = self.split(x)
@@ -883,7 +952,7 @@ class ReducedSystem(AbstractSystem):
         R, c, *_ = self.split(x)
         return R, c
 
-    @_stored("reduction.body_states")
+    @_geometry("reduction.body_states", ("x", "x"))
     def body_states(self, x):
         """Spatial poses and velocities of the bodies at state x:
         (orientations, positions, angular velocities, linear velocities); planar:
@@ -895,7 +964,7 @@ class ReducedSystem(AbstractSystem):
         rot_s, pos_s, Rg = self.symmetry.place(R, c, rot, pos)
         return rot_s, pos_s, ang, vel @ Rg.T
 
-    @_stored("reduction.momentum_map")
+    @_geometry("reduction.momentum_map", ("x", "x"))
     def momentum_map(self, x):
         """The spatial momentum J of the bodies, summed over them in space (not from mu):
         for SO(3) the angular momentum about the centre of mass; SE(2) (p_x, p_y, L);
@@ -958,7 +1027,7 @@ class ReducedSystem(AbstractSystem):
                                 shape_names=self.shape_names, chart_guard=self.chart_guard,
                                 guard_eps=self.guard_eps)
 
-    @_stored("reduction.inverse_dynamics")
+    @_geometry("reduction.inverse_dynamics", ("x", "x"), ("shape_acc", "rdd"))
     def inverse_dynamics(self, x, shape_acc):
         """Shape forces tau_r that produce r'' = ``shape_acc`` at x (no body wrenches):
         the inverse of r'' = M^-1 (tau_r + h), i.e. tau_r = M (r'' - r''(tau = 0))."""
@@ -1035,7 +1104,8 @@ class ReducedKinematic(ReducedSystem):
 
 
 # ----------------------------------------------------------------------- holonomy
-def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=(0, 1), n=48):
+def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=(0, 1), n=48,
+                       closure_tol=1e-8):
     """Integral of the curvature F over the region enclosed by a closed shape loop.
 
     The loop lies in the 2-D plane of shape coordinates ``plane`` (the others fixed
@@ -1046,6 +1116,11 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     accurate for smooth loops). Returns the algebra vector int F_ij dr^i dr^j
     (i, j = plane); the holonomy of the loop is exp(-that) for an abelian
     connection (exactly), and to leading order in the loop's size otherwise.
+
+    Checked before the quadrature: ``loop`` returns 2 finite numbers at every node and
+    closes, |loop(2 pi) - loop(0)| <= ``closure_tol`` x (its largest distance from
+    ``centre``): an open path encloses no region, and the integral over the sector it
+    sweeps is not the turn along it. ParameterError naming ``loop`` otherwise.
     """
     owner = "curvature_integral"
     if not isinstance(system, ReducedSystem):
@@ -1062,7 +1137,10 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     n = V.integer("n", n, minimum=1, owner=owner, what="Gauss-Legendre nodes per direction")
     c = _vec_arg("centre", centre, 2, owner, "point of the shape plane the region is star-shaped about")
     b = jnp.zeros(system.k) if base is None else _vec_arg("base", base, system.k, owner, "shape of the plane's origin")
+    closure_tol = V.positive("closure_tol", closure_tol, owner=owner, as_float=True,
+                             what="relative gap allowed between loop(0) and loop(2 pi)")
     xg, wg = np.polynomial.legendre.leggauss(n)
+    _check_loop(loop, c, np.concatenate([[0.0], np.pi * (xg + 1), [2 * np.pi]]), closure_tol, owner)
     S, Aa = np.meshgrid(0.5 * (xg + 1), np.pi * (xg + 1), indexing="ij")
     W = np.outer(0.5 * wg, np.pi * wg)
     args = (system, loop, c, b, jnp.asarray(S.ravel(), float), jnp.asarray(Aa.ravel(), float),
@@ -1071,6 +1149,39 @@ def curvature_integral(system: ReducedSystem, loop, centre, *, base=None, plane=
     # with array parameters, e.g. ``EllipseLoop``, takes them as inputs: new sizes reuse it)
     return _primitive.call("curvature_integral", _curvature_quadrature, args,
                            fallback=_curvature_quadrature_jit)
+
+
+def _check_loop(loop, centre, alphas, closure_tol, owner):
+    """``loop`` at ``alphas`` (0, the quadrature's nodes, 2 pi): shape (2,) each (from
+    its trace: a user's function of the wrong size is named, not a broadcasting error of
+    the quadrature), finite, and closed to ``closure_tol`` relative to its size."""
+    try:
+        out = jax.eval_shape(loop, jnp.zeros(()))
+    except Exception as e:  # noqa: BLE001 - the user's function: say what it is for
+        raise ParameterError(f"{owner}: loop(alpha) could not be evaluated on a scalar angle alpha [rad]: "
+                             f"{type(e).__name__}: {e}", "loop", loop) from None
+    if not hasattr(out, "shape") or tuple(out.shape) != (2,):
+        raise ParameterError(f"{owner}: loop(alpha) must return a point of the shape plane, shape (2,), got "
+                             f"{getattr(out, 'shape', type(out).__name__)}", "loop", loop)
+    if V.is_traced(loop, centre):  # values unknown (under jit or vmap): the shape check only
+        return
+    pts = np.asarray(_programs.call("curvature_integral.loop", _loop_points, (loop, jnp.asarray(alphas, float)),
+                                    compiler_options=_programs.QUICK_OPTIONS))
+    if not np.all(np.isfinite(pts)):
+        k = int(np.argmax(~np.all(np.isfinite(pts), axis=1)))
+        raise ParameterError(f"{owner}: loop(alpha) is not finite at alpha = {alphas[k]:.6g} (got "
+                             f"{pts[k].tolist()}); a loop of finite shape coordinates is needed", "loop", loop)
+    size = np.max(np.linalg.norm(pts - np.asarray(centre), axis=1))
+    gap = float(np.linalg.norm(pts[-1] - pts[0]))
+    if not gap <= closure_tol * max(size, np.finfo(float).tiny):
+        raise ParameterError(
+            f"{owner}: the loop does not close: |loop(2 pi) - loop(0)| = {gap:.3g}, more than closure_tol = "
+            f"{closure_tol:.1e} times its size {size:.3g}. The curvature integral is the holonomy of a closed "
+            "shape loop (alpha in [0, 2 pi], back to its start); an open path encloses no region", "loop", loop)
+
+
+def _loop_points(loop, alphas):
+    return jax.vmap(loop)(alphas)
 
 
 def _curvature_quadrature(system, loop, c, b, s, a, w, plane):
@@ -1098,9 +1209,11 @@ class EllipseLoop(eqx.Module):
     b: jax.Array
 
     def __init__(self, centre, a, b=None):
-        self.centre = jnp.asarray(centre, float)
-        self.a = jnp.asarray(a, float)
-        self.b = self.a if b is None else jnp.asarray(b, float)
+        owner = "EllipseLoop"
+        self.centre = V.real("centre", centre, owner=owner, shape=(2,), what="point of the shape plane")
+        self.a = V.positive("a", a, owner=owner, shape=(), what="semi-axis along the plane's first coordinate")
+        self.b = self.a if b is None else V.positive("b", b, owner=owner, shape=(),
+                                                      what="semi-axis along the plane's second coordinate")
 
     def __call__(self, alpha):
         return self.centre + jnp.stack([self.a * jnp.cos(alpha), self.b * jnp.sin(alpha)])

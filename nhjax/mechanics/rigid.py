@@ -59,8 +59,7 @@ class RigidBody(eqx.Module):
         if jnp.shape(self.inertia)[-2:] != (3, 3):
             raise Vd.ParameterError(f"RigidBody: inertia must be a 3x3 tensor [kg m^2], got shape "
                                     f"{jnp.shape(self.inertia)}", "inertia", self.inertia)
-        for I in np.asarray(self.inertia).reshape(-1, 3, 3):
-            Vd.inertia_tensor("inertia", I, owner="RigidBody")
+        Vd.inertias("inertia", self.inertia, owner="RigidBody")
 
     @classmethod
     def solid_cylinder(cls, mass, length, radius, axis: int = 1):

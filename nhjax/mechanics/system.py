@@ -21,10 +21,19 @@ make every simulation self-checking:
   (velocity-controlled ones): simulate() refuses to run them without a control;
 * ``regularity(t, x)``: margins of the conditions that make the equations well
   posed (e.g. full-rank constraints), checked at x0.
+
+A subclass's ``initial_state`` (the helper that builds a state from physical
+quantities) refuses by name a system that holds a batch of parameter sets (one
+state is one member's; ``_checked_initial_state``). A start outside the chart is
+``OutsideChartError`` wherever it is found: by a scene's own check of its
+arguments, by ``simulate`` (naming the argument that sets the guard, from
+``guard_arguments``), by an optimal-control problem.
 """
 
 from __future__ import annotations
 
+import functools
+import threading
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -50,9 +59,16 @@ class AbstractSystem(eqx.Module):
     guard_hints: ClassVar[dict[str, str]] = {}
     # Explanation shown when a regularity margin of this name is not positive.
     regularity_hints: ClassVar[dict[str, str]] = {}
+    # The initial_state argument that sets each guard (OutsideChartError names it).
+    guard_arguments: ClassVar[dict[str, str]] = {}
     # Large vector fields (e.g. autodiff-derived multibody dynamics) compile much faster
     # when a Runge-Kutta solver traces them once (stages in a lax.scan).
     large_vector_field: ClassVar[bool] = False
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "initial_state" in cls.__dict__:
+            cls.initial_state = _checked_initial_state(cls.__dict__["initial_state"])
 
     def vector_field(self, t, x, u):
         raise NotImplementedError
@@ -119,3 +135,28 @@ class AbstractSystem(eqx.Module):
         """Margins (name -> scalar, positive = fine) of conditions without which the
         equations of motion are ill posed; simulate() checks them at x0."""
         return {}
+
+
+_DEPTH = threading.local()  # initial_state helpers calling another's (checked once, outermost)
+
+
+def _checked_initial_state(fn):
+    """``fn`` (a subclass's ``initial_state``) after the check of the module docstring:
+    the system holds one parameter set (``_validate.single_member``; host-side, no
+    program)."""
+
+    @functools.wraps(fn)
+    def initial_state(self, *args, **kwargs):
+        depth = getattr(_DEPTH, "n", 0)
+        if depth:
+            return fn(self, *args, **kwargs)
+        from .._validate import single_member
+
+        single_member(self, owner=f"{type(self).__name__}.initial_state")
+        _DEPTH.n = depth + 1
+        try:
+            return fn(self, *args, **kwargs)
+        finally:
+            _DEPTH.n = depth
+
+    return initial_state

@@ -5,6 +5,9 @@ from __future__ import annotations
 
 from .._validate import (  # noqa: F401
     GROUP_TOL,
+    axisymmetric_moments,
+    ball_moment,
+    chart_argument,
     choice,
     function,
     in_range,

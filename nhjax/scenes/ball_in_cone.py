@@ -89,10 +89,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _programs
-from ..errors import ParameterError
+from ..errors import OutsideChartError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real, unit_quaternion
+from ._validate import ball_moment, in_range, positive, real, unit_quaternion
 from .ball_on_platter import UP_STATE_NAMES, baumgarte_gains
 
 __all__ = ["BallInCone"]
@@ -126,10 +126,10 @@ def _vec(a):
 
 def cone_parameters(owner, m, r, J, gamma, g):
     """The checked parameters (m, r, J, gamma, g) of a ball in a cone (both models)."""
+    m = positive("m", m, owner=owner, what="mass [kg]")
+    r = positive("r", r, owner=owner, what="radius [m]")
     return (
-        positive("m", m, owner=owner, what="mass [kg]"),
-        positive("r", r, owner=owner, what="radius [m]"),
-        positive("J", J, owner=owner, what="moment of inertia about a diameter [kg m^2]"),
+        m, r, ball_moment("J", J, m, r, owner=owner),
         in_range("gamma", gamma, 0.0, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
                  what="half opening angle of the cone, between axis and generator [rad]"),
         positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]"),
@@ -165,6 +165,7 @@ class BallInCone(ConstrainedLagrangian):
     state_names: ClassVar[tuple] = UP_STATE_NAMES
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"axis": _AXIS_HINT}
+    guard_arguments: ClassVar[dict] = {"axis": "rho"}
 
     def __init__(self, m=1.0, r=1.0, J=0.4, gamma=1.0, g=1.0, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
         owner = "BallInCone"
@@ -252,10 +253,10 @@ class BallInCone(ConstrainedLagrangian):
             sg, cg, r = np.sin(float(self.gamma)), np.cos(float(self.gamma)), float(self.r)
             D = float(rho) * sg - r * cg
             if not D > self.chart_eps * r:
-                raise ParameterError(
-                    f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
+                raise OutsideChartError(
+                    "axis", 0.0, f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
                     f"(D = rho sin(gamma) - r cos(gamma) = {D:.3g}); rho must exceed r cot(gamma) = "
-                    f"{r * cg / sg:.6g} (the ball resting at the bottom) by the guard's margin", "rho", rho)
+                    f"{r * cg / sg:.6g} (the ball resting at the bottom) by the guard's margin", name="rho")
         p = np.array([1.0, 0.0, 0.0, 0.0]) if attitude is None else unit_quaternion(
             "attitude", attitude, owner=owner, normalize=True)
         # concrete numbers: one compiled program instead of some 40 eager operations (small

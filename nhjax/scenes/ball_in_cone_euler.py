@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ParameterError
+from ..errors import OutsideChartError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
 from ._validate import in_range, real
@@ -84,6 +84,7 @@ class BallInConeEuler(ConstrainedLagrangian):
                                     "rho_dot", "alpha_dot", "phi_dot", "theta_dot", "psi_dot")
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"gimbal": _GIMBAL_HINT, "axis": _AXIS_HINT}
+    guard_arguments: ClassVar[dict] = {"gimbal": "theta", "axis": "rho"}
 
     def __init__(self, m=1.0, r=1.0, J=0.4, gamma=1.0, g=1.0, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
         owner = "BallInConeEuler"
@@ -162,14 +163,14 @@ class BallInConeEuler(ConstrainedLagrangian):
         D = rho * jnp.sin(self.gamma) - self.r * jnp.cos(self.gamma)
         if not isinstance(D, jax.core.Tracer):
             if not bool(D > self.chart_eps * self.r):
-                raise ParameterError(
-                    f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
+                raise OutsideChartError(
+                    "axis", 0.0, f"{owner}: rho = {float(rho)!r} puts the ball's centre on or across the cone's axis "
                     f"(D = {float(D):.3g}); rho must exceed r cot(gamma) = {float(self.r / jnp.tan(self.gamma)):.6g}",
-                    "rho", rho)
+                    name="rho")
             if not bool(jnp.abs(jnp.sin(theta)) > self.chart_eps):
-                raise ParameterError(
-                    f"{owner}: theta = {float(theta)!r} is a gimbal lock of the z-x-z Euler angles "
-                    "(sin(theta) = 0); pick theta in (0, pi), e.g. pi/2", "theta", theta)
+                raise OutsideChartError(
+                    "gimbal", 0.0, f"{owner}: theta = {float(theta)!r} is a gimbal lock of the z-x-z Euler angles "
+                    "(sin(theta) = 0); pick theta in (0, pi), e.g. pi/2", name="theta")
         gv, ea, nv = self.frame(alpha)
         w = (-alpha_dot * D / self.r) * gv + (rho_dot / self.r) * ea + spin * nv
         rates = jnp.linalg.solve(self.euler_matrix(phi, theta), w)

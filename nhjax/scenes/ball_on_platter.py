@@ -69,7 +69,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import positive, real, unit_quaternion
+from ._validate import ball_moment, positive, real, unit_quaternion
 
 __all__ = ["BallOnPlatter"]
 
@@ -133,7 +133,7 @@ class BallOnPlatter(ConstrainedLagrangian):
         owner = "BallOnPlatter"
         self.m = positive("m", m, owner=owner, what="mass [kg]")
         self.r = positive("r", r, owner=owner, what="radius [m]")
-        self.J = positive("J", J, owner=owner, what="moment of inertia [kg m^2]")
+        self.J = ball_moment("J", J, self.m, self.r, owner=owner)
         self.Omega = real("Omega", Omega, owner=owner, what="rate of the platter [rad/s]")
         self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
         self.n = 7

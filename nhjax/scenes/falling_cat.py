@@ -99,9 +99,14 @@ _WHAT = {
 
 
 def _cat_parameters(owner, I1, lam, B, mass):
-    """(I1, lam, B, mass) as float arrays, each finite and positive (named as passed)."""
-    return tuple(V.positive(name, v, owner=owner, what=_WHAT[name])
-                 for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)))
+    """(I1, lam, B, mass) as float arrays, each finite and positive (named as passed), with
+    lam = I2 / I1 <= 2 (an axisymmetric body's axial moment is at most twice its
+    transverse one)."""
+    out = tuple(V.positive(name, v, owner=owner, what=_WHAT[name])
+                for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)))
+    V.axisymmetric_moments(out[1], 1.0, names=("lam", "1 (lam = I2/I1, the axial over the transverse moment)"),
+                           owner=owner)
+    return out
 
 
 def _chart_eps(owner, chart_eps):
@@ -119,6 +124,13 @@ class _CatGeometry(eqx.Module):
     chart_eps: float = eqx.field(static=True, default=1e-3)
 
     guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT}
+    guard_arguments: ClassVar[dict] = {"sin_theta": "theta"}
+
+    def _theta_in_chart(self, theta, owner):
+        """theta inside the chart of the models with the guard sin(theta) > chart_eps."""
+        if "sin_theta" in type(self).guard_arguments and not V.is_traced(theta):
+            V.chart_argument(self, "sin_theta", np.sin(np.asarray(theta, float)) - self.chart_eps,
+                             owner=owner, name="theta")
 
     @classmethod
     def from_dimensions(cls, mass=1.0, length=1.0, radius=0.25, joint_offset=None, **kw):
@@ -251,6 +263,7 @@ class FallingCat(_CatGeometry, AbstractSystem):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
                            chi_dot=chi_dot)
+        self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
         return jnp.stack(vals)
 
     def velocities(self, x):
@@ -363,7 +376,9 @@ class FallingCatKinematic(_CatGeometry, AbstractSystem):
 
     def initial_state(self, theta, chi=0.0, psi=0.0):
         """State (theta, chi, psi) [rad]."""
-        return jnp.stack(_state_args(type(self).__name__, theta=theta, chi=chi, psi=psi))
+        vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi)
+        self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
+        return jnp.stack(vals)
 
     def vector_field(self, t, x, u):
         return jnp.stack([u[0], u[1], -self.f(x[0]) * u[1]])
@@ -403,6 +418,8 @@ class FallingCatSmooth(_CatGeometry, AbstractSystem):
     state_names: ClassVar[tuple] = ("w1", "w2", "phi")
     control_dim: ClassVar[int] = 2
     requires_control: ClassVar[bool] = True
+
+    guard_arguments: ClassVar[dict] = {}  # smooth at theta = 0: no chart guard
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0):
         self.I1, self.lam, self.B, self.mass = _cat_parameters("FallingCatSmooth", I1, lam, B, mass)
@@ -484,6 +501,7 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
         """((g1, g2, s)) from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         numbers = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
                               chi_dot=chi_dot)
+        self._theta_in_chart(numbers[0], f"{type(self).__name__}.initial_state")
         # concrete numbers: one compiled program instead of eager operations (small programs
         # compiled in every new process)
         return _programs.small_call("FallingCatAttitudes.initial_state", _attitudes_state, self, *numbers)

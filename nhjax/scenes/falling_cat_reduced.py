@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _validate as V
 from ..lie import so3
 from ..mechanics.reduction import _LOCKED_HINT, SO2, Bodies, ReducedSystem
 from .falling_cat import _CHART_HINT, _cat_parameters, _chart_eps, _state_args
@@ -62,11 +63,16 @@ class FallingCatReduced(ReducedSystem):
     """The cat as a ``ReducedSystem``: two rigid cylinders, SO(2) about e2, zero momentum."""
 
     guard_hints: ClassVar[dict] = {"sin_theta": _CHART_HINT, "locked_inertia": _LOCKED_HINT}
+    guard_arguments: ClassVar[dict] = {"sin_theta": "theta", "locked_inertia": "theta"}
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
                  chart_eps=1e-3, momentum="zero"):
-        # checked as FallingCat checks them (finite, > 0, named as passed)
+        # checked as FallingCat checks them (finite, > 0, named as passed); one parameter set
+        # (the bodies' arrays have no member axis: batches stack built systems, nhjax.stack)
         I1, lam, B, mass = _cat_parameters("FallingCatReduced", I1, lam, B, mass)
+        for name, v in (("I1", I1), ("lam", lam), ("B", B), ("mass", mass)):
+            V.real(name, v, owner="FallingCatReduced", shape=(), what="one parameter set: build a batch with "
+                   "nhjax.stack([FallingCatReduced(...), ...])")
         chart_eps = _chart_eps("FallingCatReduced", chart_eps)
         J = jnp.diag(jnp.stack([I1, lam * I1, I1]))
         bodies = Bodies(jnp.stack([mass, mass]), jnp.stack([J, J]))
@@ -78,5 +84,8 @@ class FallingCatReduced(ReducedSystem):
         """State from half bend angle, twist, overall angle [rad] and rates [rad/s]."""
         theta, chi, psi, theta_dot, chi_dot = _state_args(
             "FallingCatReduced", theta=theta, chi=chi, psi=psi, theta_dot=theta_dot, chi_dot=chi_dot)
+        if not V.is_traced(theta):
+            V.chart_argument(self, "sin_theta", np.sin(np.asarray(theta, float)) - self.chart_guard.eps,
+                             owner="FallingCatReduced.initial_state", name="theta")
         return ReducedSystem.initial_state(self, jnp.stack([theta, chi]), jnp.stack([theta_dot, chi_dot]),
                                            psi.reshape(1))

@@ -10,8 +10,11 @@ one-sided constraint is psi >= 0 on the admissible side, so
     L = (x'^2 + y'^2) / 2,        psi(t, q) = f(t) - x^2 - y^2 >= 0,
 
 with f(t) = R(t)^2 and R(t) = R0 + c t + B sin(Omega t) [m] (R0 > 0; c [m/s]
-the wall's radial speed; B [m], Omega [rad/s] an oscillation). f must stay
-positive over the simulated interval.
+the wall's radial speed; B [m], Omega [rad/s] an oscillation). R must stay
+positive over the simulated interval: ``boundary_margins`` declares it, and
+``simulate_impacts`` (and the batches) refuse a time span in which R(t) reaches 0
+with ``BoundaryError`` before integrating (the circle degenerates to a point there,
+and no motion inside it is defined).
 
 Jumps (the seed's closed forms, re-derived: they are what the affine
 projector (18) gives with J = -2 q, psi_t = f'):
@@ -91,6 +94,10 @@ class ParticleInMovingCircle(ConstrainedLagrangian):
 
     def unilateral_constraints(self, t, q):
         return jnp.stack([self.f(t) - jnp.dot(q, q)])
+
+    def boundary_margins(self, t):
+        """What must stay positive for the wall to be a circle: its radius R(t) [m]."""
+        return {"radius": self.radius(t)}
 
     @property
     def event_resolution(self):

@@ -84,6 +84,7 @@ class NBodyCat(ReducedSystem):
 
     guard_hints: ClassVar[dict] = {"locked_inertia": _LOCKED_HINT, "collinear": _LOCKED_HINT,
                                    "jacobi_chart": _JACOBI_HINT}
+    guard_arguments: ClassVar[dict] = {"locked_inertia": "shape", "collinear": "shape", "jacobi_chart": "shape"}
 
     def __init__(self, masses=(1.0, 1.0, 1.0), shape_map: Callable | None = None, shape_dim=None, *,
                  planar=False, momentum="zero", shape_names=None, chart_guard=None, guard_eps=1e-6):

@@ -86,7 +86,7 @@ import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics._kkt import kkt_accelerations
-from ._validate import in_range, positive, real
+from ._validate import chart_argument, in_range, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollRing"]
@@ -139,6 +139,7 @@ class RollRing(ConstrainedLagrangian):
     state_names: ClassVar[tuple] = STATE_NAMES
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"tilt": _TILT_HINT}
+    guard_arguments: ClassVar[dict] = {"tilt": "beta"}
 
     def __init__(self, m_r=2.0, J_r=5e-3, m_s=1.0, m1=0.5, m2=0.5, l1=0.4, l2=0.4, gamma=100.0, delta=5.0, g=9.81,
                  drive_speed=1.0, moment_scale=1e-3, chart_eps=1e-3, baumgarte=(0.0, 0.0)):
@@ -258,9 +259,7 @@ class RollRing(ConstrainedLagrangian):
             ("u_r", u_r), ("beta", beta), ("u_s", u_s), ("alpha1", alpha1), ("alpha2", alpha2),
             ("beta_dot", beta_dot), ("u_s_dot", u_s_dot), ("alpha1_dot", alpha1_dot), ("alpha2_dot", alpha2_dot))}
         b = vals["beta"]
-        if not isinstance(b, jax.core.Tracer):
-            in_range("beta", b, -np.pi / 2, np.pi / 2, lo_closed=False, hi_closed=False, owner=owner,
-                     what="tilt of the rings [rad]")
+        chart_argument(self, "tilt", np.cos(float(b)) - self.chart_eps, owner=owner, name="beta")
         a1, a2, s = vals["alpha1"], vals["alpha2"], vals["u_s"]
         a1d, a2d, sd = vals["alpha1_dot"], vals["alpha2_dot"], vals["u_s_dot"]
         e1, e2 = jnp.stack([jnp.sin(a1), -jnp.cos(a1)]), jnp.stack([jnp.sin(a2), -jnp.cos(a2)])

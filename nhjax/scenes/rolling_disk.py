@@ -124,7 +124,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real
+from ._validate import chart_argument, axisymmetric_moments, in_range, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollingDisk", "RollingDiskQuaternion"]
@@ -149,6 +149,7 @@ class _DiskParams(eqx.Module):
     chart_eps: float = eqx.field(static=True, default=1e-3)
 
     guard_hints: ClassVar[dict] = {"tilt": _FLAT_HINT}
+    guard_arguments: ClassVar[dict] = {"tilt": "theta"}
 
     def _set(self, m, r, g, J1, J2, chart_eps):
         owner = type(self).__name__
@@ -157,6 +158,7 @@ class _DiskParams(eqx.Module):
         self.g = positive("g", g, allow_zero=True, owner=owner, what="gravity [m/s^2]")
         self.J1 = positive("J1", J1, owner=owner, what="moment about the symmetry axis [kg m^2]")
         self.J2 = positive("J2", J2, owner=owner, what="moment about a diameter [kg m^2]")
+        axisymmetric_moments(self.J1, self.J2, names=("J1", "J2"), owner=owner, mass=self.m, radius=self.r)
         self.chart_eps = float(in_range("chart_eps", chart_eps, 0.0, 1.0, hi_closed=False, owner=owner, as_float=True,
                                         shape=(), what="margin of the tilt guard cos(theta) > chart_eps"))
 
@@ -236,6 +238,8 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
                                                      ("psi", psi), ("phi_dot", phi_dot),
                                                      ("theta_dot", theta_dot), ("psi_dot", psi_dot))]
         x1, x2, phi, th, psi, phid, thd, psid = vals
+        if not isinstance(th, jax.core.Tracer):
+            chart_argument(self, "tilt", np.cos(np.asarray(th, float)) - self.chart_eps, owner=owner, name="theta")
         return jnp.stack([
             x1, x2, phi, th, psi,
             self.r * psid * jnp.cos(phi), self.r * psid * jnp.sin(phi), phid, thd, psid,

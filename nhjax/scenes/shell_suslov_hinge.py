@@ -110,8 +110,7 @@ class _HingeParameters(AbstractSystem):
         owner = type(self).__name__
         self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
         self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
-        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
-                             what="central moment of inertia of the shell [kg m^2]")
+        self.Is = V.shell_moment(Is, self.ms, self.Rs, owner=owner)
         self.mt = V.positive("mt", mt, owner=owner, what="mass of the inner body [kg]")
         self.inertia = _principal_moments("inertia", inertia, owner=owner)
 

@@ -203,8 +203,7 @@ def _shell_and_top(owner, ms, Rs, Is, mt, It, c, g):
     """The shell's and the top's parameters, checked (shared by the models here)."""
     ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
     Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
-    Is = V.positive("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, owner=owner,
-                    what="central moment of inertia of the shell [kg m^2]")
+    Is = V.shell_moment(Is, ms, Rs, owner=owner)
     mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
     It = V.inertia_tensor("It", It, owner=owner)
     c = V.vector("c", c, 3, owner=owner, what="hinge to the top's centre of mass, top axes [m]")
@@ -531,6 +530,7 @@ class ShellWithTopLagrangian(ConstrainedLagrangian):
         "ShellWithTopReduced, or restart from the equivalent rotation vector theta (1 - 2 pi/|theta|)"
         for k in ("shell rotation vector", "top rotation vector")
     }
+    guard_arguments: ClassVar[dict] = {"shell rotation vector": "attitude", "top rotation vector": "attitude"}
 
     state_names: ClassVar[tuple] = (
         "xc", "yc", "ths1", "ths2", "ths3", "tht1", "tht2", "tht3",

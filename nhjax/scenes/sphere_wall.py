@@ -65,9 +65,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..errors import OutsideChartError
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.impacts import oscillation_resolution
-from ._validate import in_range, positive, real
+from ._validate import ball_moment, in_range, positive, real
 
 __all__ = ["RollingSphereWall"]
 
@@ -97,6 +98,8 @@ class RollingSphereWall(ConstrainedLagrangian):
         k = np.sqrt(2 / 5) * r if k is None else k
         positive("k", k)
         positive("m", m)
+        ball_moment("k", np.asarray(m, float) * np.asarray(k, float) ** 2, m, r, owner="RollingSphereWall",
+                    label="m k^2", what="radius of gyration k [m]: moment m k^2 about a diameter")
         in_range("restitution", restitution, 0.0, 1.0, owner="RollingSphereWall", what="coefficient of restitution")
         real("f0", f0, owner="RollingSphereWall")
         real("V", V, owner="RollingSphereWall")
@@ -147,8 +150,11 @@ class RollingSphereWall(ConstrainedLagrangian):
         owner = "RollingSphereWall.initial_state"
         x, y, vx, vy, spin, phi, psi = (real(n, v, owner=owner) for n, v in (
             ("x", x), ("y", y), ("vx", vx), ("vy", vy), ("spin", spin), ("phi", phi), ("psi", psi)))
-        theta = in_range("theta", theta, 0.0, np.pi, lo_closed=False, hi_closed=False, owner=owner,
-                         what="Euler angle [rad]; 0 and pi are the chart's singular points")
+        theta = real("theta", theta, owner=owner, what="Euler angle [rad]")
+        if not isinstance(theta, jax.core.Tracer) and not 0.0 < float(theta) < np.pi:
+            raise OutsideChartError(
+                "sin_theta", 0.0, f"{owner}: theta = {float(theta)!r} is outside the Euler angles' chart (0, pi): "
+                "0 and pi are its singular points; pick theta in (0, pi), e.g. pi/2", name="theta")
         r = self.r
         th, ph, ps = (jnp.asarray(v, float) for v in (theta, phi, psi))
         wx, wy, wz = -jnp.asarray(vy, float) / r, jnp.asarray(vx, float) / r, jnp.asarray(spin, float)

@@ -83,8 +83,7 @@ class ShellWithTop(LieLagrangian):
         self.ms = V.positive("ms", ms, owner=owner, what="mass of the shell [kg]")
         self.Rs = V.positive("Rs", Rs, owner=owner, what="radius of the shell [m]")
         self.mt = V.positive("mt", mt, owner=owner, what="mass of the top [kg]")
-        self.Is = V.positive("Is", 2.0 / 3.0 * self.ms * self.Rs**2 if Is is None else Is, owner=owner,
-                             what="central moment of inertia of the shell [kg m^2]")
+        self.Is = V.shell_moment(Is, self.ms, self.Rs, owner=owner)
         self.It = V.inertia_tensor("It", It, owner=owner)
         self.c = V.vector("c", c, 3, owner=owner, what="centre of the shell to the top's centre of mass, "
                           "top frame [m]")

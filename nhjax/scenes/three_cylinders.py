@@ -90,10 +90,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _programs
-from ..errors import ParameterError
+from ..errors import OutsideChartError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real
+from ._validate import axisymmetric_moments, in_range, positive, real
 from .ball_on_platter import UP_STATE_NAMES, baumgarte_gains
 
 __all__ = ["ThreeCylinders", "ThreeCylindersMinimal"]
@@ -114,6 +114,15 @@ E3 = np.array([0.0, 0.0, 1.0])  # numpy: no program to compile at import
 
 
 def _params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps):
+    p = _positive_params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps)
+    axisymmetric_moments(p["J_a"], p["J_t"], names=("J_a", "J_t"), owner=owner, mass=p["m"], radius=p["r2"],
+                         mass_names=("m", "r2"))
+    axisymmetric_moments(p["J_l"], p["J_lt"], names=("J_l", "J_lt"), owner=owner, mass=p["m_l"], radius=p["r1"],
+                         mass_names=("m_l", "r1"))
+    return p
+
+
+def _positive_params(owner, r1, r2, a, m, J_a, J_t, m_l, J_l, J_lt, chart_eps):
     return dict(
         r1=positive("r1", r1, owner=owner, what="radius of the lower cylinders [m]"),
         r2=positive("r2", r2, owner=owner, what="radius of the upper cylinder [m]"),
@@ -143,6 +152,7 @@ class _Common(ConstrainedLagrangian):
     chart_eps: float = eqx.field(static=True, default=1e-3)
     control_dim: ClassVar[int] = 0
     guard_hints: ClassVar[dict] = {"parallel": _PARALLEL_HINT}
+    guard_arguments: ClassVar[dict] = {"parallel": "theta"}
 
     def __init__(self, *args, **kwargs):  # the concrete scenes define their own
         raise TypeError("use ThreeCylinders or ThreeCylindersMinimal")
@@ -195,10 +205,10 @@ class _Common(ConstrainedLagrangian):
             th, a = float(vals[2]), float(self.a)
             margin = min(abs(np.sin(th)), abs(np.sin(th - a)))
             if not margin > self.chart_eps:
-                raise ParameterError(
-                    f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
+                raise OutsideChartError(
+                    "parallel", 0.0, f"{owner}: theta = {th!r} puts the upper axis parallel to a lower axis "
                     f"(|sin(theta)| or |sin(theta - a)| = {margin:.3g} <= chart_eps = {self.chart_eps:g}); "
-                    f"pick theta away from 0 and from a = {a:.6g} (mod pi)", "theta", theta)
+                    f"pick theta away from 0 and from a = {a:.6g} (mod pi)", name="theta")
         traced = any(isinstance(v, jax.core.Tracer) for v in vals)
         numbers = jnp.stack([jnp.asarray(v, float) for v in vals]) if traced else np.asarray(vals, float)
         return _programs.small_call(f"{type(self).__name__}.initial_state", _initial_from_numbers, self, numbers)
