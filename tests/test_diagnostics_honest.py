@@ -147,3 +147,51 @@ def test_derivatives_on_a_lie_group_state_match_the_closed_form():
         np.testing.assert_allclose(value, ref_value, rtol=0, atol=1e-10)
         np.testing.assert_allclose(tangent, ref_tangent, rtol=0, atol=1e-10)
         assert float(jnp.max(jnp.abs(ref_tangent))) > 0.5
+
+
+def test_impact_residuals_and_gap_are_those_of_the_step_ends():
+    """The residuals an impact solve reports are maxima over the ends of its accepted steps
+    (``saveat="steps"`` saves exactly those states): recomputed in NumPy from the seeds'
+    formulas, they agree to round-off, both ways, on loose solves where they stand far
+    above round-off.
+
+    * A sphere rolling into a wall (seed 004, ex. 10.3): the rolling constraints
+      x' cos psi + y' sin psi + r phi' sin theta = 0, x' sin psi - y' cos psi - r theta' = 0
+      and z' = 0 drift between impacts (nothing projects velocity constraints), and the
+      gap x - r - f(t) to the wall is smallest at some step end.
+    * A plastic particle sliding along the inside of a circle (ex. 10.1): the persistent
+      contact's psi = R^2 - |q|^2 and Psi = 2 R R' - 2 q.q' after each step's projection
+      (one Newton step: second-order small, not zero, after long loose steps)."""
+    from nhjax.scenes import ParticleInMovingCircle, RollingSphereWall
+
+    sw = RollingSphereWall(V=0.3, restitution=0.8)
+    tr = nhjax.simulate_impacts(sw, sw.initial_state(x=0.5, vx=-1.0, vy=0.4, spin=2.0), 2.0, saveat="steps",
+                                **LOOSE)
+    n = int(np.sum(np.isfinite(np.asarray(tr.ts))))
+    assert n > 10 and int(tr.num_impacts) >= 1
+    ts, xs = np.asarray(tr.ts[:n]), np.asarray(tr.xs[:n])
+    assert np.all(np.diff(ts) > 0) and np.all(np.isnan(np.asarray(tr.ts[n:])))
+    q, v = xs[:, :6], xs[:, 6:]
+    th, ps = q[:, 3], q[:, 5]
+    r = float(sw.r)
+    rolling = np.stack([v[:, 0] * np.cos(ps) + v[:, 1] * np.sin(ps) + r * v[:, 4] * np.sin(th),
+                        v[:, 0] * np.sin(ps) - v[:, 1] * np.cos(ps) - r * v[:, 3], v[:, 2]])
+    residual = np.max(np.abs(rolling))
+    assert residual > 1e-9  # loose: far above round-off
+    np.testing.assert_allclose(float(tr.constraint_residual), residual, rtol=1e-10)
+    gap = q[:, 0] - r - 0.3 * ts  # the wall x = V t
+    np.testing.assert_allclose(float(tr.min_gap[0]), np.min(gap), rtol=1e-10, atol=1e-15)
+
+    pc = ParticleInMovingCircle(R0=1.0, restitution=0.0)
+    tr = nhjax.simulate_impacts(pc, pc.initial_state(x=0.0, y=-0.9, vx=2.0, vy=0.0), 3.0, saveat="steps",
+                                rtol=1e-3, atol=1e-3)
+    assert bool(tr.persistent[0])  # sliding on the wall at the end
+    n = int(np.sum(np.isfinite(np.asarray(tr.ts))))
+    t_rest = float(tr.rest_times[0])
+    xs = np.asarray(tr.xs[:n])[np.asarray(tr.ts[:n]) > t_rest]  # the step ends while sliding
+    assert len(xs) >= 3
+    psi = 1.0 - np.sum(xs[:, :2] ** 2, 1)
+    Psi = -2 * np.sum(xs[:, :2] * xs[:, 2:], 1)
+    residual = np.max(np.maximum(np.abs(psi), np.abs(Psi)))
+    assert residual > 1e-9  # loose, long steps: one Newton step leaves a residual
+    np.testing.assert_allclose(float(tr.contact_residual), residual, rtol=1e-10)

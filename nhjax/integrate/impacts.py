@@ -433,10 +433,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     N = int(max_impacts)
     M = _event_capacity(N)
     m = int(event_samples)
-    if ts is None:
-        ts = jnp.zeros((0,), dtype)
-    ts = jnp.asarray(ts, dtype)
-    ns = ts.shape[0]
+    # ts == "steps": the state after every accepted step that ends no event (the states
+    # whose residuals the result reports), in rows of their own times (at most max_steps)
+    at_steps = isinstance(ts, str)
+    if at_steps:
+        ns = int(max_steps)
+    else:
+        ts = jnp.asarray(jnp.zeros((0,), dtype) if ts is None else ts, dtype)
+        ns = ts.shape[0]
 
     def split(x):
         return x[:n], x[n:]
@@ -511,12 +515,17 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             contact_res=jnp.zeros((), dtype),
             save_idx=zi, ys=jnp.full((ns, 2 * n + 1), nan),
         )
+        if at_steps:
+            carry["ts_steps"] = jnp.full((ns,), nan)
         carry = jax.tree_util.tree_map(jnp.asarray, carry)
         return carry
 
 
     def save(c, t_b, interp):
-        """Save every pending time <= t_b from the step's dense output."""
+        """Save every pending time <= t_b from the step's dense output (none when saving
+        at the steps: ``save_step``)."""
+        if at_steps:
+            return c["save_idx"], c["ys"]
         def cond(sc):
             idx, _ = sc
             return (idx < ns) & (ts[jnp.minimum(idx, ns - 1)] <= t_b)
@@ -530,6 +539,14 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         if reverse:  # a loop with a reverse-mode rule (at most ns saves per step)
             return eqxi.while_loop(cond, one, (c["save_idx"], c["ys"]), max_steps=ns, kind="bounded")
         return jax.lax.while_loop(cond, one, (c["save_idx"], c["ys"]))
+
+    def save_step(o, t, y):
+        """Saving at the steps: ``o`` with (t, y) in the next row."""
+        if at_steps:
+            i = o["save_idx"]
+            o["ys"], o["ts_steps"] = o["ys"].at[i].set(y, mode="drop"), o["ts_steps"].at[i].set(t, mode="drop")
+            o["save_idx"] = i + 1
+        return o
 
     def project(t, y, persistent):
         """Put persistent contacts back on psi = 0, Psi = 0 (one Newton step on q, the
@@ -746,7 +763,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             o["perm_res"] = jnp.maximum(c["perm_res"], perm)
             o["contact_res"] = jnp.maximum(c["contact_res"], cres)
             o["min_gap"] = jnp.minimum(c["min_gap"], gap)
-            return o
+            return save_step(o, t_end, y_new)
 
         def stepping(c):
             accepted = dict(c)
@@ -816,7 +833,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         energy_error = energy(x_final) - energy(x0) - W - c["E_jumps"]
         saved = jnp.arange(ns) < c["save_idx"]
         return dict(
-            ts=jnp.where(saved, ts, jnp.nan), xs=c["ys"][:, :-1], work=c["ys"][:, -1],
+            ts=c["ts_steps"] if at_steps else jnp.where(saved, ts, jnp.nan), xs=c["ys"][:, :-1], work=c["ys"][:, -1],
             t_final=c["t"], x_final=x_final, num_impacts=c["n_imp"],
             energy_jumps=c["E_jumps"], energy_error=energy_error,
             persistent=c["persistent"], rest_times=c["rest_time"], release_times=c["release_time"],
@@ -869,7 +886,8 @@ def solve_impacts(
     jax.grad / jax.vjp go through it, forward mode does not). Both give the same values.
 
     No input checks and no exceptions: failures are in ``status``. ``ts``: 1-D array of
-    save times in [t0, t1] (None: none saved). Everything numeric may be traced
+    save times in [t0, t1] (None: none saved; "steps": the state after each accepted step
+    that ends no event, up to ``max_steps`` rows). Everything numeric may be traced
     (differentiate with jax.jvp/jacfwd); ``solver``, ``max_steps``, ``max_impacts``,
     ``event_samples``, ``locate_iterations`` and whether ``dtmax`` is None are static.
     To batch: ``jax.vmap(lambda s, x: solve_impacts(s, x, t1, **options))`` (this is
@@ -1007,7 +1025,10 @@ def simulate_impacts(
         A contact with psi ~ 0, Psi ~ 0 and a compressive multiplier starts persistent.
     t1, t0 : time interval [s].
     saveat : int (that many equally spaced saved times, default 101) or 1-D array of
-        times in [t0, t1]; 0: save nothing.
+        times in [t0, t1]; 0: save nothing; "steps": the state after every accepted step
+        that ends no event, at the step's end (``ts`` holds those times, NaN past the
+        last; at most ``max_steps`` rows): the states over which ``constraint_residual``
+        and ``contact_residual`` are taken.
     unilateral : psi(t, q) -> (k,) gaps (admissible where >= 0), added to ``system``
         by ``nhjax.mechanics.WithContacts``.
     restitution : alpha in [0, 1], scalar or (k,): overrides the system's.
@@ -1070,6 +1091,9 @@ def simulate_impacts(
         saveat = 101
     if isinstance(saveat, (int, np.integer)) and not isinstance(saveat, bool) and saveat == 0:
         ts = None  # no saved times
+    elif isinstance(saveat, str):
+        choice("saveat", saveat, ("steps",), owner=owner)
+        ts = "steps"
     else:
         check_saveat(saveat, t0, t1, owner=owner)
         if isinstance(saveat, (int, np.integer)) and _concrete(t0, t1):
