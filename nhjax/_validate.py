@@ -182,10 +182,32 @@ def _check_shape(name, arr, shape, owner, what):
 
 
 # ------------------------------------------------------------------ parameters
+def to_device(value):
+    """``value`` as a float64 JAX array. A concrete value goes to the device with
+    ``jax.device_put``: an eager ``jnp.asarray`` of a host array is an XLA program of its
+    own, compiled (or looked up) per shape in every new process, which a first answer pays
+    for each parameter and state it converts. Tracers become ``jnp.asarray`` as usual."""
+    if isinstance(value, (jax.Array, jax.core.Tracer)) and value.dtype == np.float64:
+        return value  # (a tracer too: under jax.grad of a concrete value, a cast is eager work)
+    if any(isinstance(v, jax.core.Tracer) for v in jtu.tree_leaves(value)):
+        return jnp.asarray(value, float)
+    if isinstance(value, jax.Array) and value.dtype == np.float64:
+        return value
+    return jax.device_put(np.asarray(value, float))
+
+
+def stacked(values):
+    """``jnp.stack(values)`` (floats), without an eager program when every value is
+    concrete (``to_device``)."""
+    if any(isinstance(v, jax.core.Tracer) for v in jtu.tree_leaves(values)):
+        return jnp.stack([jnp.asarray(v, float) for v in values])
+    return to_device(np.stack([np.asarray(v, float) for v in values]))
+
+
 def _out(arr, as_float):
     if as_float:
         return float(arr)
-    return jnp.asarray(arr, float)
+    return to_device(arr)
 
 
 def real(name, value, *, owner="", what="", shape=None, as_float=False):
@@ -197,7 +219,7 @@ def real(name, value, *, owner="", what="", shape=None, as_float=False):
     """
     arr = _as_real(name, value, owner, what)
     if isinstance(arr, jax.core.Tracer):
-        return jnp.asarray(arr, float)
+        return to_device(arr)
     _check_shape(name, arr, shape, owner, what)
     bad = ~np.isfinite(arr)
     if bad.any():
@@ -212,7 +234,7 @@ def positive(name, value, *, allow_zero=False, owner="", what="", shape=None, as
     ``allow_zero``), element by element. ``mass=0`` -> "mass must be positive, got 0"."""
     arr = _as_real(name, value, owner, what)
     if isinstance(arr, jax.core.Tracer):
-        return jnp.asarray(arr, float)
+        return to_device(arr)
     _check_shape(name, arr, shape, owner, what)
     kind = "non-negative" if allow_zero else "positive"
     bound = ">= 0" if allow_zero else "> 0"
@@ -322,7 +344,7 @@ def inertia_tensor(name, value, *, owner=""):
             f"{_where(owner)}{name} must be symmetric positive definite (eigenvalues {ev.tolist()}); "
             "every principal moment of a rigid body is > 0", name, value)
     moment_triangle(name, ev, owner=owner)
-    return jnp.asarray(arr, float)
+    return to_device(arr)
 
 
 #: Relative slack of the realizability checks of inertias (rounding in moments computed
@@ -357,7 +379,7 @@ def inertias(name, value, *, owner="", allow_zero=False):
     principal moments (``moment_triangle``). Returns the array (tracers pass)."""
     arr = _as_real(name, value, owner, "inertia tensors [kg m^2]")
     if isinstance(arr, jax.core.Tracer):
-        return jnp.asarray(arr, float)
+        return to_device(arr)
     if arr.shape[-2:] != (3, 3):
         raise ParameterError(f"{_where(owner)}{name} must hold 3x3 inertia tensors, got shape {arr.shape}",
                              name, value)
@@ -456,7 +478,7 @@ def principal_moments(name, value, *, owner="", diagonal_reason=""):
             f"{_where(owner)}{name} must be positive principal moments, got {arr.tolist()}; pass "
             "finite values > 0", name, value)
     moment_triangle(name, arr, owner=owner, value=value)
-    return jnp.asarray(arr, float)
+    return to_device(arr)
 
 
 # ------------------------------------------------------------------ groups
@@ -539,12 +561,12 @@ def rotation(name, value, *, owner="", tol=GROUP_TOL):
     passed to ``initial_state``. GroupMembershipError otherwise."""
     arr = _as_real(name, value, owner, "a 3x3 rotation matrix")
     if isinstance(arr, jax.core.Tracer):
-        return jnp.asarray(arr, float)
+        return to_device(arr)
     if arr.shape != (3, 3):
         raise ParameterError(f"{_where(owner)}{name} must be a 3x3 rotation matrix, got shape {arr.shape}",
                              name, value)
     _check_group_value(name, SO3Body(), arr, tol, owner)
-    return jnp.asarray(arr, float)
+    return to_device(arr)
 
 
 def unit_quaternion(name, value, *, owner="", tol=GROUP_TOL, normalize=False):
@@ -564,7 +586,7 @@ def unit_quaternion(name, value, *, owner="", tol=GROUP_TOL, normalize=False):
                                  name, value)
         arr = arr / n
     _check_group_value(name, UnitQuaternionBody(), arr, tol, owner)
-    return jnp.asarray(arr, float)
+    return to_device(arr)
 
 
 def _group_message(name, space, residual, det, tol, owner, projected=False):

@@ -104,7 +104,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
-from .._validate import check_saveat, choice, first_failures, integer, positive, solver_settings, time_span
+from .._validate import (check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
+                         to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
 from .batch import BatchError, MemberStatuses
 from ..mechanics.impacts import (
@@ -237,7 +238,7 @@ def _num_contacts(system, t0, x0):
             "nhjax.mechanics.WithContacts(system, psi, restitution)"
         )
     psi = jax.eval_shape(lambda t, x: jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n])),
-                         jnp.asarray(t0, float), x0)
+                         jax.ShapeDtypeStruct((), jnp.float64), x0)
     return psi.shape[0]
 
 
@@ -952,7 +953,7 @@ def _as_states(x0, owner, xp=np):
     if isinstance(x0, (str, bytes)) or x0 is None:
         raise StateError(f"{owner}: x0 must be an array of real numbers (q, q'), got {x0!r}", "x0")
     try:
-        return xp.asarray(x0, float)
+        return xp.asarray(x0, float) if xp is np else to_device(x0)
     except (TypeError, ValueError) as e:
         raise StateError(f"{owner}: x0 must be an array of real numbers (q, q'): {e}", "x0") from None
 
@@ -1081,7 +1082,7 @@ def simulate_impacts(
     if known:
         csys, cx0, ct0, ct1 = _primitive.concrete((system, x0, t0, t1))
         report = _programs.call("impacts-start", _start_report,
-                                (csys, cx0, jnp.asarray(ct0, float), jnp.asarray(ct1, float),
+                                (csys, cx0, to_device(ct0), to_device(ct1),
                                  _boundary_samples(csys, ct0, ct1)), compiler_options=_programs.QUICK_OPTIONS)
         failures = _start_failures(jax.tree_util.tree_map(lambda a: np.asarray(a)[None], report), 1,
                                    constraint_tol, owner)
@@ -1433,14 +1434,14 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     options = {k_: int(v) if _SETTINGS.get(k_) is int else v for k_, v in options.items()}
     x0 = _as_states(x0, owner)
     sys_axes, x_axis, B = _batch_axes(system, x0, in_axes, owner)
-    k = _num_contacts(system, t0, jnp.zeros(2 * system.n))
+    k = _num_contacts(system, t0, jax.ShapeDtypeStruct((2 * system.n,), jnp.float64))
     del k  # (a system without one-sided constraints is refused there)
 
     # -- every member's start, checked at once (one program) before any solve
     sys0 = _members_of(system, x0, sys_axes, x_axis, 0)[0]
     n_samples = _boundary_samples(sys0, t0, t1)
     report = _programs.call("impacts-start-batch", _start_report_batch,
-                            (system, x0, jnp.asarray(t0, float), jnp.asarray(t1, float), n_samples, sys_axes,
+                            (system, x0, to_device(t0), to_device(t1), n_samples, sys_axes,
                              x_axis), compiler_options=_programs.QUICK_OPTIONS)
     batched = (any(ax is not None for ax in jax.tree_util.tree_leaves(sys_axes)), x_axis is not None)
     failures = _start_failures(report, B, float(constraint_tol), owner, batched)
@@ -1459,7 +1460,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     opts = {k_: (jnp.asarray(v, float) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
     workers = int(workers or os.cpu_count() or 1)
-    t1a = jnp.asarray(t1, float)
+    t1a = to_device(t1)
 
     def run_members(system, x0, B):
         """Solve the B members of system / x0 (all of them good) in chunks."""
@@ -1531,7 +1532,9 @@ def _impact_statuses(fields, reasons, system, t0, on_error, on_max_impacts, max_
         code = int(fields["status"][j])
         reasons[int(j)] = (f"stopped after max_impacts={max_impacts} impacts" if code in stop
                            else _STATUS_MSG[code].format(N=max_impacts, S=max_steps))
-    traj = ImpactBatchTrajectory(**{k: jnp.asarray(v) for k, v in fields.items()}, n=system.n,
+    # (jax.device_put, not jnp.asarray: an eager jnp.asarray of a host array is a program
+    # compiled per shape and dtype, seconds for a result's thirty-odd fields in a new process)
+    traj = ImpactBatchTrajectory(**jax.device_put(fields), n=system.n,
                                  state_names=tuple(getattr(system, "state_names", ()) or ()), reasons=reasons,
                                  stop_codes=stop)
     failed = np.nonzero(traj.failed)[0].tolist()

@@ -14,10 +14,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._validate import real
+from .._validate import real, to_device
 from ..errors import ParameterError
 
 __all__ = ["PiecewiseConstant", "PiecewiseLinear", "Sinusoids"]
+
+
+def _at_least_1d(a):
+    """``jnp.atleast_1d`` without an eager program for concrete arrays (one compiled per
+    shape in each new process otherwise)."""
+    if jnp.ndim(a) >= 1 and isinstance(a, (jax.Array, jax.core.Tracer)):
+        return a
+    if isinstance(a, jax.core.Tracer):
+        return jnp.atleast_1d(a)
+    return to_device(np.atleast_1d(np.asarray(a)))
 
 
 class Sinusoids(eqx.Module):
@@ -33,11 +43,11 @@ class Sinusoids(eqx.Module):
 
     def __init__(self, offset, amplitude, omega, phase=None):
         owner = "Sinusoids"
-        self.offset = jnp.atleast_1d(real("offset", offset, owner=owner, what="input units"))
-        self.amplitude = jnp.atleast_1d(real("amplitude", amplitude, owner=owner, what="input units"))
-        self.omega = jnp.atleast_1d(real("omega", omega, owner=owner, what="angular frequency [rad/s]"))
-        self.phase = (jnp.zeros_like(self.omega) if phase is None
-                      else jnp.atleast_1d(real("phase", phase, owner=owner, what="[rad]")))
+        self.offset = _at_least_1d(real("offset", offset, owner=owner, what="input units"))
+        self.amplitude = _at_least_1d(real("amplitude", amplitude, owner=owner, what="input units"))
+        self.omega = _at_least_1d(real("omega", omega, owner=owner, what="angular frequency [rad/s]"))
+        self.phase = (_at_least_1d(np.zeros(jnp.shape(self.omega))) if phase is None
+                      else _at_least_1d(real("phase", phase, owner=owner, what="[rad]")))
         shapes = {a.shape for a in (self.offset, self.amplitude, self.omega, self.phase)}
         if len(shapes) != 1:
             raise ParameterError(

@@ -49,6 +49,7 @@ from .._validate import (
     solver_settings,
     time_span,
     time_span_check,
+    to_device,
 )
 from ..errors import (
     ChartSingularityError,
@@ -295,9 +296,11 @@ def _diagnose_placeholders(system, control, x0, t0, ts, track, project, diagnost
     """Arguments of the eager path's second program (``_saved_eager``) with zeros for the
     solution."""
     n = ts.shape[0]
-    xs = jtu.tree_map(lambda a: jnp.zeros((n,) + jnp.shape(a), a.dtype), x0)
-    x_end = jtu.tree_map(lambda a: jnp.zeros(jnp.shape(a), a.dtype), x0)
-    work = jnp.zeros(n) if track else None
+    # (host zeros put on the device: an eager jnp.zeros is a program compiled per shape)
+    zeros = lambda shape, dtype: jax.device_put(np.zeros(shape, dtype))  # noqa: E731
+    xs = jtu.tree_map(lambda a: zeros((n,) + jnp.shape(a), a.dtype), x0)
+    x_end = jtu.tree_map(lambda a: zeros(jnp.shape(a), a.dtype), x0)
+    work = zeros(n, float) if track else None
     return system, control, x0, t0, ts, xs, jnp.asarray(t0), x_end, work, track, project, diagnostics
 
 
@@ -623,7 +626,7 @@ def _report_args(system, control, x0, t0, project):
     """The host-side checks of x0 and the control; ``member_report``'s arguments."""
     check_state(system, x0, owner="simulate")
     check_control(system, control, owner="simulate")
-    return system, control, x0, jnp.asarray(t0, float), project
+    return system, control, x0, to_device(t0), project
 
 
 def _start_checks(system, control, x0, t0, project):
@@ -894,7 +897,7 @@ def simulate(
         jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
         progress=bool(progress), diagnostics=diagnostics, runtime_errors=True, single=True,
     )
-    t0a, t1a = jnp.asarray(t0, float), jnp.asarray(t1, float)
+    t0a, t1a = to_device(t0), to_device(t1)
     show = np.asarray(bool(progress))
     # diffrax's own runtime checks (save times, dt0) stay out of the solve's program:
     # _configure made them (eager: raised; traced: runtime errors outside the solve), so
@@ -1085,7 +1088,9 @@ def _eager_checks(traj, system, control, static, on_guard):
     result, t_final, leaves = jax.device_get(_primitive.concrete((traj.result, traj.t_final,
                                                                   jtu.tree_leaves(traj.xs))))
     t_final = float(t_final)
-    if result == diffrax.RESULTS.event_occurred:
+    # compared as host integers: comparing equinox's enumeration items is an eager program
+    code = int(np.asarray(result._value))
+    if code == diffrax.RESULTS.event_occurred._value:
         traj = _truncate(traj, t_final, system, control)
         name = _guard_of(system, static.guard_names, traj.x_end)
         traj = dataclasses.replace(traj, guard=name)
@@ -1094,11 +1099,11 @@ def _eager_checks(traj, system, control, static, on_guard):
                 name, t_final, system.guard_hints.get(name, ""), trajectory=traj
             )
         return traj
-    if result != diffrax.RESULTS.successful:
+    if code != diffrax.RESULTS.successful._value:
         traj = _truncate(traj, t_final, system, control)
         x_end = traj.x_end
         detail = _diagnose_failure(system, control, t_final, x_end, traj)
-        if result == diffrax.RESULTS.max_steps_reached:
+        if code == diffrax.RESULTS.max_steps_reached._value:
             reason = f"max_steps={static.max_steps} exhausted"
         else:
             reason = str(result.error_message if hasattr(result, "error_message") else result)

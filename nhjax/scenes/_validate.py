@@ -17,6 +17,7 @@ from .._validate import (  # noqa: F401
     principal_moments,
     real,
     rotation,
+    to_device,
     unit_quaternion,
     vector,
 )

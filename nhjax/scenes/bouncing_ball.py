@@ -54,7 +54,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
-from ._validate import in_range, positive, real
+from ._validate import in_range, positive, real, to_device
 
 __all__ = ["BouncingBall"]
 
@@ -79,7 +79,7 @@ class BouncingBall(ConstrainedLagrangian):
         positive("m", m)
         in_range("restitution", restitution, 0.0, 1.0, owner="BouncingBall", what="coefficient of restitution")
         self.g, self.A, self.omega, self.restitution, self.m = (
-            jnp.asarray(v, float) for v in (g, A, omega, restitution, m))
+            to_device(v) for v in (g, A, omega, restitution, m))
         self.n = 1
 
     # ---------------------------------------------------------------- model
@@ -116,7 +116,12 @@ class BouncingBall(ConstrainedLagrangian):
         height = positive("height", height, allow_zero=True, owner=owner, what="above the table [m]")
         velocity = real("velocity", velocity, owner=owner, what="[m/s]")
         t0 = real("t0", t0, owner=owner, what="[s]")
-        return jnp.stack([self.table(t0) + jnp.asarray(height, float), jnp.asarray(velocity, float)])
+        if any(isinstance(v, jax.core.Tracer) for v in (height, velocity, t0, self.A, self.omega)):
+            return jnp.stack([self.table(t0) + jnp.asarray(height, float), jnp.asarray(velocity, float)])
+        # concrete numbers: computed on the host (eager jnp operations are programs compiled
+        # per process)
+        table = np.asarray(self.A) * np.sin(np.asarray(self.omega) * np.asarray(t0))
+        return to_device(np.stack([table + np.asarray(height), np.asarray(velocity)]))
 
     def invariants(self, x):
         return {}

@@ -264,7 +264,7 @@ class FallingCat(_CatGeometry, AbstractSystem):
         vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi, theta_dot=theta_dot,
                            chi_dot=chi_dot)
         self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
-        return jnp.stack(vals)
+        return V.stacked(vals)
 
     def velocities(self, x):
         """Generalized velocities (theta', chi', psi') with psi' = -f chi'."""
@@ -378,7 +378,7 @@ class FallingCatKinematic(_CatGeometry, AbstractSystem):
         """State (theta, chi, psi) [rad]."""
         vals = _state_args(type(self).__name__, theta=theta, chi=chi, psi=psi)
         self._theta_in_chart(vals[0], f"{type(self).__name__}.initial_state")
-        return jnp.stack(vals)
+        return V.stacked(vals)
 
     def vector_field(self, t, x, u):
         return jnp.stack([u[0], u[1], -self.f(x[0]) * u[1]])

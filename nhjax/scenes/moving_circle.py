@@ -51,7 +51,7 @@ import jax.numpy as jnp
 
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.impacts import oscillation_resolution
-from ._validate import in_range, positive, real
+from ._validate import in_range, positive, real, to_device
 
 __all__ = ["ParticleInMovingCircle"]
 
@@ -76,7 +76,7 @@ class ParticleInMovingCircle(ConstrainedLagrangian):
         real("B", B, owner="ParticleInMovingCircle")
         real("Omega", Omega, owner="ParticleInMovingCircle")
         self.R0, self.c, self.B, self.Omega, self.restitution = (
-            jnp.asarray(v, float) for v in (R0, c, B, Omega, restitution))
+            to_device(v) for v in (R0, c, B, Omega, restitution))
         self.n = 2
 
     def kinetic_energy(self, q, qd):

@@ -68,7 +68,7 @@ import numpy as np
 from ..errors import OutsideChartError
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.impacts import oscillation_resolution
-from ._validate import ball_moment, in_range, positive, real
+from ._validate import ball_moment, in_range, positive, real, to_device
 
 __all__ = ["RollingSphereWall"]
 
@@ -107,7 +107,7 @@ class RollingSphereWall(ConstrainedLagrangian):
         real("B", B, owner="RollingSphereWall")
         real("Omega", Omega, owner="RollingSphereWall")
         self.r, self.k, self.m, self.f0, self.V, self.a, self.B, self.Omega, self.restitution = (
-            jnp.asarray(v, float) for v in (r, k, m, f0, V, a, B, Omega, restitution))
+            to_device(v) for v in (r, k, m, f0, V, a, B, Omega, restitution))
         self.n = 6
 
     def kinetic_energy(self, q, qd):
@@ -156,7 +156,7 @@ class RollingSphereWall(ConstrainedLagrangian):
                 "sin_theta", 0.0, f"{owner}: theta = {float(theta)!r} is outside the Euler angles' chart (0, pi): "
                 "0 and pi are its singular points; pick theta in (0, pi), e.g. pi/2", name="theta")
         r = self.r
-        th, ph, ps = (jnp.asarray(v, float) for v in (theta, phi, psi))
+        th, ph, ps = (to_device(v) for v in (theta, phi, psi))
         wx, wy, wz = -jnp.asarray(vy, float) / r, jnp.asarray(vx, float) / r, jnp.asarray(spin, float)
         th_d = wx * jnp.cos(ps) + wy * jnp.sin(ps)
         ph_d = (wx * jnp.sin(ps) - wy * jnp.cos(ps)) / jnp.sin(th)
