@@ -609,7 +609,7 @@ def simulate_batch(
     solve = chunk_fn
     first = chunk_args(0)
     if len(devices) == 1:
-        all_args = (*first[:3], jnp.asarray(first[3]), t0a, t1a, tol, project, options, axes)
+        all_args = (*first[:3], jax.device_put(first[3]), t0a, t1a, tol, project, options, axes)
         all_args += (True, n_lanes) if lockstep else ()
         key = _compile_key(chunk_fn, all_args)
         solve = _COMPILED.get(key) if key is not None else None

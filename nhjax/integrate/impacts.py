@@ -1098,14 +1098,14 @@ def simulate_impacts(
     else:
         check_saveat(saveat, t0, t1, owner=owner)
         if isinstance(saveat, (int, np.integer)) and _concrete(t0, t1):
-            ts = jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)), float)  # no program of its own
+            ts = to_device(np.linspace(float(t0), float(t1), int(saveat)))  # (no program of its own)
         elif isinstance(saveat, (int, np.integer)):
             ts = jnp.linspace(t0, t1, int(saveat))
         else:
-            ts = jnp.asarray(saveat, float)
+            ts = to_device(saveat)
     if dtmax is None:
         dtmax = getattr(system, "event_resolution", None)
-    arr = lambda v: None if v is None else jnp.asarray(v, float)  # noqa: E731 (no recompiles)
+    arr = lambda v: None if v is None else to_device(v)  # noqa: E731 (no recompiles)
     args = (system, x0, arr(t1), arr(t0), ts, solver, arr(rtol), arr(atol), arr(dt0), arr(dtmax), int(max_steps),
             int(max_impacts), arr(rest_velocity), arr(graze_tol), arr(release_tol), int(event_samples), adjoint)
     if known:
@@ -1452,12 +1452,12 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     good = np.setdiff1d(np.arange(B), np.asarray(list(reasons), int))
 
     if isinstance(saveat, (int, np.integer)):
-        ts = None if saveat == 0 else jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)), float)
+        ts = None if saveat == 0 else to_device(np.linspace(float(t0), float(t1), int(saveat)))
     else:
         ts = jnp.asarray(saveat, float)
     if "dtmax" not in options:
         options["dtmax"] = getattr(sys0, "event_resolution", None)
-    opts = {k_: (jnp.asarray(v, float) if isinstance(v, float) else v) for k_, v in options.items()}
+    opts = {k_: (to_device(v) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
     workers = int(workers or os.cpu_count() or 1)
     t1a = to_device(t1)

@@ -581,9 +581,8 @@ def _save_times(saveat, t0, t1, runtime_errors=False):
     if isinstance(saveat, (int, np.integer)):
         if _is_traced(t0, t1):
             return jnp.linspace(t0, t1, int(saveat))
-        # with a dtype, jnp.asarray hands a numpy array over without a program (without one it
-        # runs an identity program, one more to lower in a new process)
-        return jnp.asarray(np.linspace(float(t0), float(t1), int(saveat)), float)
+        # (to_device: an eager jnp operation would be one more program in a new process)
+        return to_device(np.linspace(float(t0), float(t1), int(saveat)))
     ts = jnp.asarray(saveat, dtype=float)
     if _is_traced(ts, t0, t1):
         if not runtime_errors:
