@@ -45,7 +45,7 @@ import numpy as np
 
 import nhjax
 
-from .direct import DirectResult
+from ._result import DirectResult
 from .problem import (
     OCP,
     ProblemError,
