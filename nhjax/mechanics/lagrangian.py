@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
+from .. import _args as Vd
 from ._kkt import (
     REGULARITY_HINTS,
     kkt_accelerations,
@@ -49,8 +50,6 @@ __all__ = ["ConstrainedLagrangian", "Lagrangian"]
 
 def baumgarte_pair(owner, gains):
     """(alpha, beta) [1/s]: two finite, non-negative Baumgarte gains."""
-    from .. import _validate as Vd
-
     try:
         a, b = gains
     except (TypeError, ValueError):
@@ -422,8 +421,6 @@ class Lagrangian(ConstrainedLagrangian):
         invariants=None,
         free_invariants=None,
     ):
-        from .. import _validate as Vd
-
         owner = "Lagrangian"
         self.state_names = _state_names(owner, state_names, int(n) if isinstance(n, (int, np.integer)) else n)
         self.user_invariants = _invariant_table(owner, "invariants", invariants)
