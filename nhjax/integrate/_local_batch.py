@@ -207,11 +207,12 @@ def _cached_lockstep(args, state_names):
     return solve
 
 
-#: XLA options for the lock-step chunks (profiled per kernel with jax.profiler, cat,
-#: 1024 members, one thread): 512-bit vectors where the CPU has them (AVX-512; ignored
-#: elsewhere): 18.0 -> 15.1 ms; and no YNNPACK fusions: XLA turned each member's error
-#: norm into a YNNPACK dot that took 10-25 % of the loop (4096 members: 50 -> 38 ms).
-#: An XLA that does not know an option compiles without it.
+#: XLA options for the lock-step chunks, chosen by profiling each kernel with
+#: jax.profiler (benchmarks/batch_throughput.py measures the chunks): 512-bit vectors
+#: where the CPU has them (AVX-512; ignored elsewhere), since the member axis is last and
+#: the stage arithmetic vectorizes over it; and no YNNPACK fusions, which turned each
+#: member's error norm into a small dot product that cost more than the arithmetic it
+#: replaced. An XLA that does not know an option compiles without it.
 _COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_ynn_fusion_type": ""}
 
 
@@ -267,7 +268,7 @@ def _plan(B: int, workers: int, chunk_size: int):
 
 
 _POOLS: dict = {}
-_COMPILED: dict = {}  # chunk programs by argument structure (lowering again cost ~0.5 ms a call)
+_COMPILED: dict = {}  # chunk programs by argument structure (not lowered again on every call)
 
 
 def _compile_key(fn, args):
@@ -285,7 +286,7 @@ def _compile_key(fn, args):
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """One long-lived pool per worker count (starting threads cost ~2.5 ms per call)."""
+    """One long-lived pool per worker count: threads started once, not on every call."""
     if workers not in _POOLS:
         _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix="nhjax-batch")
     return _POOLS[workers]
@@ -412,7 +413,7 @@ def simulate_batch_local(
 
     def chunk_args(i):
         """Chunk i's members, padded to the capacity with copies of its last member
-        (host-side numpy: an eager jax slice is a dispatch of ~0.15 ms per leaf)."""
+        (host-side numpy: an eager jax slice would be a dispatch of its own per leaf)."""
         lo = starts[i]
         n = min(size, B - lo)
         idx = np.minimum(np.arange(lo, lo + capacity), lo + n - 1)

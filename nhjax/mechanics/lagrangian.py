@@ -70,9 +70,9 @@ class ConstrainedLagrangian(AbstractSystem):
     n: eqx.AbstractVar[int]
     regularity_hints = REGULARITY_HINTS
     # The engine's vector field (mass matrix and constraint Jacobian by autodiff, a KKT
-    # solve) is large: tracing it once per step instead of once per stage cut the first
-    # simulate() of the shipped scenes by 0.5-17 s (benchmarks/compile_times.py; e.g. the
-    # engine cat 27.1 -> 10.4 s, RollingDisk 6.6 -> 3.7 s) at the same or lower run time.
+    # solve) is large: tracing it once per step instead of once per stage shortens the
+    # compile of every shipped scene's first simulate(), most for the largest vector
+    # fields, at the same or lower run time (benchmarks/compile_times.py measures it).
     large_vector_field = True
 
     # ----------------------------------------------------------- to override
