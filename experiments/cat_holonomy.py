@@ -31,7 +31,7 @@ def main(out=Path("cat_holonomy")):
     out.mkdir(parents=True, exist_ok=True)
     thetas = np.linspace(0.05, np.pi / 2, 25)
     rows = []
-    for lam in (0.1, 0.316, 1.0, 3.0):
+    for lam in (0.1, 0.316, 1.0, 2.0):  # lam = I2/I1 <= 2: a thin disk at most (the triangle inequality)
         kin = FallingCatKinematic(lam=lam)
         for th in thetas:
             tr = nhjax.simulate(kin, jnp.array([th, 0.0, 0.0]), 1.0, control=Twist(jnp.asarray(2 * np.pi)),
