@@ -100,7 +100,9 @@ def experiments() -> dict[str, Experiment]:
         try:
             root = importlib.resources.files(package)
         except (ModuleNotFoundError, TypeError) as err:  # a stale registration must not break `nhjax list`
-            print(f"nhjax: experiment package {package!r} ({origin}) cannot be loaded ({err})", file=sys.stderr)
+            hint = ("; nhjax's experiments come with an install (pip install -e . in a checkout), not with "
+                    "PYTHONPATH" if package == OWN_PACKAGE else "")
+            print(f"nhjax: experiment package {package!r} ({origin}) cannot be loaded ({err}){hint}", file=sys.stderr)
             continue
         for f in sorted(root.iterdir(), key=lambda f: f.name):
             if f.is_file() and f.name.endswith(".py") and not f.name.startswith("_"):
