@@ -24,8 +24,9 @@ $(VENV)/.bench: $(VENV)/.core
 	$(PIP) -e '.[test,bench,peers]'
 	@touch $@
 
+# outputs in experiments/out/demo (ignored by git) rather than ./optimal_somersault
 demo: $(VENV)/.core
-	$(BIN)/nhjax demo
+	$(BIN)/nhjax demo --out experiments/out/demo
 
 test: $(VENV)/.core
 	$(BIN)/python -m pytest

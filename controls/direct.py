@@ -29,7 +29,6 @@ step) reuses the compiled code: one program for the merit, its gradient and the
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import equinox as eqx
@@ -54,48 +53,10 @@ from .problem import (
     host_array,
     rollout,
 )
+from ._result import DirectResult, check_differentiable
+from .sqp import solve_direct_sqp
 
 __all__ = ["DirectResult", "solve_direct"]
-
-
-@dataclasses.dataclass
-class DirectResult:
-    """Outcome of ``solve_direct`` (and ``solve_direct_newton``).
-
-    params : (P,) the optimal control parameters of the parametrization.
-    control : ``param.signal(params)``, callable as u(t, x) [the system's input units].
-    cost : Phi(x(T)) + int_0^T L dt at ``params``, simulated at the solve's rtol/atol
-        [the cost's units].
-    violation : max |c| over the terminal constraints psi(x(T)) (and, for multiple
-        shooting, the continuity defects of the segments) [the constraints' units].
-    multipliers : (m,) the constraint multipliers lam of the augmented Lagrangian
-        (dJ + lam . dc = 0 at a solution; for multiple shooting the first m belong to
-        psi).
-    iterations : inner (L-BFGS/optax) steps taken in all (Newton iterations for
-        ``solve_direct_newton``).
-    converged : True when the violation is below ``ctol`` and the cost changed by less
-        than ``ftol`` (relative) over the last outer iteration (``solve_direct``), or the
-        violation is below ``ctol`` and the relative stationarity below ``gtol``
-        (``solve_direct_newton``). False: see ``message``.
-    message : why the solve stopped.
-    history : per-step records (merit, grad_norm, outer; per outer iteration cost and
-        violation).
-    seconds : wall time of the call (compilation included on a first call) [s].
-    node_states : (S - 1, n) the states at the interior segment starts (multiple
-        shooting), else None.
-    """
-
-    params: jax.Array
-    control: object
-    cost: float
-    violation: float
-    multipliers: np.ndarray
-    iterations: int
-    converged: bool
-    message: str
-    history: dict
-    seconds: float
-    node_states: object = None
 
 
 class _Transcription(eqx.Module):
@@ -299,8 +260,6 @@ def solve_direct(
     if isinstance(optimizer, str) and optimizer == "sqp":
         if shooting != "single":
             raise ProblemError("optimizer='sqp' is single shooting; use 'lbfgs' with shooting='multiple'")
-        from .sqp import solve_direct_sqp
-
         return solve_direct_sqp(ocp, param, guess, rtol=rtol, atol=atol, ctol=ctol, gtol=gtol, ftol=ftol,
                                 max_iter=max_inner, progress=progress)
     t_start = time.perf_counter()
@@ -331,7 +290,7 @@ def solve_direct(
     # gradient of J + w.c + |c|^2/2 for random weights w: finite and not zero unless the
     # cost and constraints are non-differentiable or do not depend on the parameters
     w = np.random.default_rng(0).uniform(0.5, 1.5, m)
-    _check_differentiable(np.asarray(_merit_and_grad(tr, z, w, np.asarray(1.0))[1]))
+    check_differentiable(np.asarray(_merit_and_grad(tr, z, w, np.asarray(1.0))[1]))
     lam = np.zeros(m)
     if isinstance(optimizer, str):
         if optimizer not in ("lbfgs", "adam"):
@@ -385,17 +344,3 @@ def solve_direct(
         iterations=len(history["merit"]), converged=converged, message=msg, history=history,
         seconds=time.perf_counter() - t_start, node_states=nodes,
     )
-
-
-def _check_differentiable(jac):
-    if not np.all(np.isfinite(jac)):
-        raise ProblemError(
-            "the cost or the terminal constraints have a non-finite derivative at the initial "
-            "guess: use differentiable (smooth) cost and constraint functions"
-        )
-    if float(np.max(np.abs(jac))) == 0.0:
-        raise ProblemError(
-            "neither the cost nor the constraints depend on the control parameters (zero "
-            "gradient): they are constant, or not differentiable where it matters (e.g. "
-            "built from rounding or comparisons)"
-        )

@@ -45,7 +45,7 @@ import numpy as np
 
 import nhjax
 
-from .direct import DirectResult
+from ._result import DirectResult
 from .problem import (
     OCP,
     ProblemError,
@@ -261,10 +261,10 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     contact point, which must return to zero, is changed only by the second-order
     effect -mt (V x v_c) . gamma. The Hessian of the Lagrangian has eigenvalues
     from about -4e2 to 3e4 against 0.5-7 for the cost, so ``solve_direct``'s
-    augmented Lagrangian with L-BFGS inner solves needs ~300 inner steps per
-    outer iteration (2 outer iterations in 5 minutes, violation 2.2e-3), and an
-    augmented Lagrangian with exact-Hessian Newton inner solves creeps along the
-    curved constraint manifold (~100 iterations).
+    augmented Lagrangian with L-BFGS inner solves needs hundreds of inner steps
+    per outer iteration and leaves the constraints far from met after several, and
+    an augmented Lagrangian with exact-Hessian Newton inner solves creeps along the
+    curved constraint manifold.
 
     ocp : a ``controls.OCP`` with terminal constraints (m of them); control
         bounds are not supported (use ``solve_direct``).

@@ -72,7 +72,7 @@ class HamiltonianSystem(AbstractSystem):
     ocp: OCP
     u_star_method: str = "quadratic"
     # the right-hand side nests derivatives of H: scanned Runge-Kutta stages compile it
-    # once instead of once per stage (2-3x less compile time, same steps)
+    # once instead of once per stage (a shorter compile, the same steps)
     large_vector_field: ClassVar[bool] = True
 
     @property

@@ -95,7 +95,7 @@ def _clear_error_traces():
 def host_array(x):
     """A concrete number or array as a float64 jax array, handed over from numpy:
     ``jnp.asarray`` on a Python number (or on an array without a dtype) runs an eager
-    program, one more to lower in every new process (5-25 ms each)."""
+    program, one more to lower in every new process."""
     return jnp.asarray(np.asarray(x), float)
 
 
@@ -271,7 +271,7 @@ def check_tolerances(owner, **tols):
             if isinstance(v, tuple):
                 V.integer(name, v[0], minimum=v[2] if len(v) > 2 else 1, owner=owner)
             elif v is not None:
-                # as a host float (a device array per check cost ~0.1 ms each solve);
+                # as a host float (a device array per check would be a dispatch per solve);
                 # tracers pass unchecked either way
                 V.positive(name, v, owner=owner, shape=(), as_float=True)
 
@@ -426,8 +426,8 @@ class OCP(eqx.Module):
                 raise V.outside_chart(self.system, name, g, owner="OCP", name="x0", cls=OutsideChartProblem)
 
     def _check_shapes(self):
-        # a structural question: answered once per structure (three traces of the model
-        # otherwise, ~25 ms per problem: a grid of problems builds hundreds)
+        # a structural question: answered once per structure (otherwise three traces of
+        # the model per problem, and a grid of problems builds hundreds)
         key = _structure_key((self.system, self.x0, self.running_cost, self.terminal_cost,
                               self.terminal_constraints))
         try:

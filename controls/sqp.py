@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from .direct import DirectResult, _check_differentiable
+from ._result import DirectResult, check_differentiable
 from .newton import _control_cost_hessian, _Shooting, _stationarity, _values_and_jacobian
 from .problem import (
     OCP,
@@ -201,7 +201,7 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
     if not np.all(np.isfinite(y)):
         raise ProblemError("the cost or the terminal constraints are not finite at the initial guess (the guess "
                            "may drive the state out of its chart, e.g. through a singular configuration)")
-    _check_differentiable(D)
+    check_differentiable(D)
     B = np.asarray(_control_cost_hessian(ocp, param, z))
     B = 0.5 * (B + B.T)
     ev = np.linalg.eigvalsh(B)

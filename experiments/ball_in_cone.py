@@ -8,10 +8,10 @@ like the skate's cycloid. Beside the path: the heights it returns to against the
 turning points of the reduced radial motion (nhjax.scenes.ball_in_cone), the time
 between greatest heights against the quadrature period, the azimuth advance per period,
 and the drift of the three integrals (energy, L = D^2 alpha', N). Solved with
-simulate()'s default solver at rtol = atol = 1e-10 over 10 radial periods. Writes
-experiments/out/ball_in_cone.{png,json}.
+simulate()'s default solver at rtol = atol = 1e-10 over 10 radial periods. Writes ball_in_cone.{png,json} to ``--out`` (default: ./ball_in_cone/).
 """
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -21,7 +21,7 @@ import numpy as np
 import nhjax
 from nhjax.scenes.ball_in_cone import BallInCone
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("ball_in_cone")  # under the working directory
 START = dict(rho=3.0, alpha=0.0, rho_dot=0.5, alpha_dot=0.3, spin=1.0)
 
 
@@ -37,6 +37,7 @@ def extrema(ts, y, sign=1):
 
 
 def main(out=OUT, rtol=1e-10, periods=10, saveat=20001):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ball = BallInCone(gamma=1.0)
     x0 = ball.initial_state(**START)
@@ -99,4 +100,7 @@ def main(out=OUT, rtol=1e-10, periods=10, saveat=20001):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./ball_in_cone)")
+    main(ap.parse_args().out)

@@ -5,9 +5,10 @@ garbled in our copy, so the ball starts at (1, 0) with centre velocity (0, 1.5)
 and a vertical spin 1 (any spin gives the same centre path). The (u, p) model
 in R^3 x S^3 is integrated by the engine; the path is compared with the exact
 circle, and the turning rate of the centre's velocity with kappa = 0.75.
-Writes experiments/out/ball_on_platter.{png,csv}.
+Writes ball_on_platter.{png,csv} to ``--out`` (default: ./ball_on_platter/).
 """
 
+import argparse
 import csv
 from pathlib import Path
 
@@ -17,10 +18,11 @@ import numpy as np
 import nhjax
 from nhjax.scenes.ball_on_platter import BallOnPlatter
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("ball_on_platter")  # under the working directory
 
 
 def main(out=OUT):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     ball = BallOnPlatter(Omega=2.0, J=0.6)
     x0 = ball.initial_state(u1=1.0, u2=0.0, u1_dot=0.0, u2_dot=1.5, spin=1.0)
@@ -82,4 +84,7 @@ def main(out=OUT):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./ball_on_platter)")
+    main(ap.parse_args().out)

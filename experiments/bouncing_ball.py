@@ -3,7 +3,7 @@
 All motions are exact-impact simulations (``nhjax.simulate_impacts``; free flights are
 parabolas, integrated to round-off; impacts by the seed's affine projector with
 restitution alpha; chattering ends in resting contact and the ball is released where the
-table's acceleration passes -g). Outputs in experiments/out/:
+table's acceleration passes -g). Outputs in ``--out`` (default: ./bouncing_ball/):
 
 * bouncing_ball_bifurcation.png: impact phase (w t mod 2 pi) / 2 pi and normalized
   rebound velocity v w / g of the impacts after a transient, over Gamma, for thousands of
@@ -35,7 +35,6 @@ import numpy as np
 import nhjax
 from nhjax.scenes import BouncingBall
 
-OUT = Path(__file__).resolve().parent / "out"
 G, W = 9.81, 2 * np.pi  # table period 1 s
 
 
@@ -82,8 +81,11 @@ def main(argv=None):
     p.add_argument("--members", type=int, default=2000)
     p.add_argument("--alpha", type=float, default=0.5)
     p.add_argument("--no-figures", action="store_true")
+    p.add_argument("--out", type=Path, default=Path("bouncing_ball"),
+                   help="folder for the figures, the animation and the JSON (default: ./bouncing_ball)")
     args = p.parse_args(argv)
-    OUT.mkdir(parents=True, exist_ok=True)
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
     load0 = os.getloadavg()
     g1, g2 = thresholds(args.alpha)
     bif = bifurcation(args.members, args.alpha)
@@ -115,7 +117,7 @@ def main(argv=None):
         portraits={str(gm): dict(impacts=int(t.num_impacts), energy_bookkeeping_error=float(t.energy_error))
                    for gm, (_, t) in portraits.items()},
     )
-    (OUT / "bouncing_ball.json").write_text(json.dumps(summary, indent=2))
+    (out / "bouncing_ball.json").write_text(json.dumps(summary, indent=2))
     if args.no_figures:
         return summary
 
@@ -135,7 +137,7 @@ def main(argv=None):
                     f"(dashed: Gamma = 1, and the period-1 window [Gamma_1, Gamma_2] of the high-bounce map)")
     ax[1].set(xlabel="Gamma = A w^2 / g", ylabel="rebound velocity  v w / g")
     fig.tight_layout()
-    fig.savefig(OUT / "bouncing_ball_bifurcation.png", dpi=130)
+    fig.savefig(out / "bouncing_ball_bifurcation.png", dpi=130)
 
     fig, axes = plt.subplots(2, 2, figsize=(12, 9))
     for a, (gm, (bb, t)) in zip(axes.ravel(), portraits.items()):
@@ -152,7 +154,7 @@ def main(argv=None):
     a.set(xlabel="impact phase / 2 pi", ylabel="v w / g", title="Gamma = 3.5: impact map")
     a.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(OUT / "bouncing_ball_phase.png", dpi=120)
+    fig.savefig(out / "bouncing_ball_phase.png", dpi=120)
 
     from matplotlib.animation import FuncAnimation, PillowWriter
 
@@ -173,8 +175,8 @@ def main(argv=None):
         a.set(xlim=(-1, 1), ylim=(-A - 0.05, top + 0.02), title=f"Gamma = 1.7, t = {ts[j]:.2f} s")
         a.set_xticks([])
 
-    FuncAnimation(fig, draw, frames=len(sel)).save(OUT / "bouncing_ball.gif", writer=PillowWriter(fps=25), dpi=72)
-    print(f"wrote {OUT / 'bouncing_ball_bifurcation.png'}, bouncing_ball_phase.png, bouncing_ball.gif, bouncing_ball.json")
+    FuncAnimation(fig, draw, frames=len(sel)).save(out / "bouncing_ball.gif", writer=PillowWriter(fps=25), dpi=72)
+    print(f"wrote {out / 'bouncing_ball_bifurcation.png'}, bouncing_ball_phase.png, bouncing_ball.gif, bouncing_ball.json")
     return summary
 
 

@@ -3,9 +3,10 @@
 For several inertia ratios lam and bend angles theta, the velocity-controlled cat
 (7.1) twists chi once around at fixed theta; the simulated turn of psi is compared
 with the closed form -2 pi f(theta), and small circular loops with the curvature
-(7.13) times their area. Writes experiments/out/cat_holonomy.{png,csv}.
+(7.13) times their area. Writes cat_holonomy.{png,csv} to ``--out`` (default: ./cat_holonomy/).
 """
 
+import argparse
 import csv
 from pathlib import Path
 
@@ -25,11 +26,12 @@ class Twist(eqx.Module):
         return jnp.stack([jnp.zeros_like(self.rate), self.rate])
 
 
-def main(out=Path("experiments/out")):
+def main(out=Path("cat_holonomy")):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     thetas = np.linspace(0.05, np.pi / 2, 25)
     rows = []
-    for lam in (0.1, 0.316, 1.0, 3.0):
+    for lam in (0.1, 0.316, 1.0, 2.0):  # lam = I2/I1 <= 2: a thin disk at most (the triangle inequality)
         kin = FallingCatKinematic(lam=lam)
         for th in thetas:
             tr = nhjax.simulate(kin, jnp.array([th, 0.0, 0.0]), 1.0, control=Twist(jnp.asarray(2 * np.pi)),
@@ -63,4 +65,7 @@ def main(out=Path("experiments/out")):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=Path("cat_holonomy"),
+                    help="folder for the figure and the table (default: ./cat_holonomy)")
+    main(ap.parse_args().out)

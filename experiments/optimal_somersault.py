@@ -5,7 +5,7 @@ bent by theta0, returns to that shape after T and has turned by ``turn`` about
 e2 at zero angular momentum with the least vibrational energy (4.8). The best
 direct optimum is polished by Pontryagin shooting and the two costs compared;
 then the motion is shown in 3-D. Writes optimal_somersault.{json,png,gif} and
-optimal_somersault_3d.png to ``--out`` (default experiments/out).
+optimal_somersault_3d.png to ``--out`` (default: ./optimal_somersault/).
 
 This lives in experiments/ rather than in the ``nhjax`` package because it uses
 ``controls``: the simulator imports nothing from the optimal-control layer.
@@ -33,7 +33,7 @@ def _timed(fn):
     return out, time.perf_counter() - t
 
 
-def optimal_somersault(out="experiments/out", figures=True, theta0=0.6, T=2.0, turn=np.pi,
+def optimal_somersault(out="optimal_somersault", figures=True, theta0=0.6, T=2.0, turn=np.pi,
                        start_windings=(1, 0, -1)):
     """``nhjax demo``: optimize the somersault, then show it.
 
@@ -139,7 +139,7 @@ def optimal_somersault(out="experiments/out", figures=True, theta0=0.6, T=2.0, t
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="experiments/out", help="directory for figures and JSON")
+    ap.add_argument("--out", default="optimal_somersault", help="folder for the figures and the JSON (default: ./optimal_somersault)")
     ap.add_argument("--no-figures", action="store_true")
     ap.add_argument("--theta0", type=float, default=0.6, help="bend at start and end [rad]")
     ap.add_argument("--T", type=float, default=2.0, help="duration [s]")

@@ -13,7 +13,7 @@
    augmented-Lagrangian direct solve from zero inputs, the Newton direct polish,
    Pontryagin from its costates.
 
-Writes experiments/out/planar_chain_geometry.png, planar_chain_reorientation.png,
+Writes to ``--out`` (default: ./planar_chain/) planar_chain_geometry.png, planar_chain_reorientation.png,
 planar_chain_steering.png, planar_chain.json and planar_chain.gif (the
 reorientation, then the steering).
 
@@ -285,7 +285,7 @@ def animation(frames_list, path, fps=12):
 # ------------------------------------------------------------------ main
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="experiments/out")
+    ap.add_argument("--out", default="planar_chain", help="folder for the outputs (default: ./planar_chain)")
     ap.add_argument("--no-animation", action="store_true")
     ap.add_argument("--turn", type=float, default=0.2)
     ap.add_argument("--T", type=float, default=3.0)

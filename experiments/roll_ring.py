@@ -11,9 +11,10 @@ the drive v(t), the tilt beta, the positions u_r and u_s, the pendulum angles, a
 energy ledgers (mechanical energy E, dissipated D, supplied W, and the drift of
 E + D - W). Solved with simulate()'s default solver at rtol = atol = 1e-10 over 10 s,
 with steps landing on the 16 kinks of N(t) (jump_ts=RollRing.kink_times()).
-Writes experiments/out/roll_ring.{png,json}.
+Writes roll_ring.{png,json} to ``--out`` (default: ./roll_ring/).
 """
 
+import argparse
 import json
 import time
 from pathlib import Path
@@ -25,10 +26,11 @@ import numpy as np
 import nhjax
 from nhjax.scenes.roll_ring import SWITCH_TIMES, RollRing, drive_profile
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("roll_ring")  # under the working directory
 
 
 def main(out=OUT, rtol=1e-10, t_end=10.0, saveat=2001):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rr = RollRing()
     x0 = rr.initial_state()
@@ -95,4 +97,7 @@ def main(out=OUT, rtol=1e-10, t_end=10.0, saveat=2001):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./roll_ring)")
+    main(ap.parse_args().out)

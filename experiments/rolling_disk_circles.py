@@ -10,11 +10,12 @@ to 20 pi) is tabulated next to the seed's Table 9.1; Fig. 9.10 is the
 trajectory for Delta = 0.08. The solves use simulate()'s default solver at
 rtol = atol = 1e-8 (the seed's DAENH ran at 1e-8 too, Table 8.x); the Delta = 0 row
 is also solved at 1e-10 to show which part of eps is the integrator's. Writes
-experiments/out/rolling_disk_circles.{png,csv,json}; the JSON holds the table (with
-the seed's columns and the tolerance) and the erratic Delta = 0.08 path of Fig. 9.10
+rolling_disk_circles.{png,csv,json} to ``--out`` (default: ./rolling_disk_circles/); the
+JSON holds the table (with the seed's columns and the tolerance) and the erratic Delta = 0.08 path of Fig. 9.10
 (t, x1, x2, theta at 4001 times).
 """
 
+import argparse
 import csv
 import json
 from pathlib import Path
@@ -24,7 +25,7 @@ import numpy as np
 import nhjax
 from nhjax.scenes.rolling_disk import RollingDisk
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("rolling_disk_circles")  # under the working directory
 Q0, THETA0 = 2.17080452, 0.25
 SEED_TABLE = {  # Delta: (q, eps) as printed in the seed
     0.0: (2.17080452, 6.660e-8), 1e-7: (2.1708046, 5.948e-7), 1e-6: (2.1708055, 7.223e-6),
@@ -34,6 +35,7 @@ SEED_TABLE = {  # Delta: (q, eps) as printed in the seed
 
 
 def main(out=OUT, rtol=1e-8):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     disk = RollingDisk(J1=0.35, J2=0.5)
     s0 = disk.circular_rate(THETA0, Q0)
@@ -111,4 +113,7 @@ def main(out=OUT, rtol=1e-8):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./rolling_disk_circles)")
+    main(ap.parse_args().out)

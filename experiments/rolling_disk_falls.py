@@ -8,9 +8,10 @@ largest tilt below pi/2 and rights itself again (its Chaplygin integrals keep
 cos(theta) away from 0 while it rolls); a disk started without rolling tips over
 its edge, reaches the edge of the chart at the exact fall time, and
 ``simulate(on_guard="stop")`` returns the motion up to there.
-Writes experiments/out/rolling_disk_falls.{png,csv}.
+Writes rolling_disk_falls.{png,csv} to ``--out`` (default: ./rolling_disk_falls/).
 """
 
+import argparse
 import csv
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import numpy as np
 import nhjax
 from nhjax.scenes.rolling_disk import RollingDisk
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("rolling_disk_falls")  # under the working directory
 
 
 def fall_time(disk, theta0):
@@ -34,6 +35,7 @@ def fall_time(disk, theta0):
 
 
 def main(out=OUT):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     disk = RollingDisk(J1=0.35, J2=0.5)
     quat = disk.quaternion_model()
@@ -119,4 +121,7 @@ def main(out=OUT):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./rolling_disk_falls)")
+    main(ap.parse_args().out)

@@ -6,9 +6,10 @@ tilted by arcsin 1 (from rest with phi' = 1, ten loops), at the seed's relative
 tolerance 1e-8. Reports, for three formulations (the engine's DAE in R^6 with
 Tsit5, the same with projected steps, the skate on SE(2) with RKMK45), the max
 error of the six state components and of the multiplier over the saved points,
-next to DAENH's 0.4e-7 and 0.2e-7. Writes experiments/out/skate_cycloid.{png,csv}.
+next to DAENH's 0.4e-7 and 0.2e-7. Writes skate_cycloid.{png,csv} to ``--out`` (default: ./skate_cycloid/).
 """
 
+import argparse
 import csv
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import numpy as np
 import nhjax
 from nhjax.scenes.skate import Skate
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("skate_cycloid")  # under the working directory
 SEED = {"circle": 4e-8, "cycloid": 2e-8}
 
 
@@ -59,6 +60,7 @@ def run(case, formulation, rtol=1e-8, atol=1e-12):
 
 
 def main(out=OUT):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     rows, paths = [], {}
     for case in ("circle", "cycloid"):
@@ -117,4 +119,7 @@ def main(out=OUT):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./skate_cycloid)")
+    main(ap.parse_args().out)

@@ -148,7 +148,7 @@ def figure(bends, turns, costs, peaks, status, hol, path):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="experiments/out")
+    ap.add_argument("--out", default="somersault_map", help="folder for the outputs (default: ./somersault_map)")
     ap.add_argument("--n", type=int, default=16, help="grid points per axis (n x n problems)")
     ap.add_argument("--stages", type=int, default=4, help="continuation stages from the fixed-theta loop")
     ap.add_argument("--no-ipopt", action="store_true", help="skip the CasADi + IPOPT peer")

@@ -10,7 +10,7 @@
 For each: final cost of both methods and their relative difference, terminal
 violation, iterations, wall time after compile and time with compile (the first
 solve); a figure (trajectory, controls of both methods, costates), a JSON
-summary and an animation in experiments/out/. (The free-winding problem in
+summary and an animation in ``--out`` (default: ./somersault_tasks/). (The free-winding problem in
 smooth coordinates is what `nhjax demo` runs.)
 
 Usage: nhjax run somersault_tasks [--out DIR] [--no-animation]
@@ -130,7 +130,7 @@ def torque_task():
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--out", default="experiments/out")
+    ap.add_argument("--out", default="somersault_tasks", help="folder for the outputs (default: ./somersault_tasks)")
     ap.add_argument("--no-animation", action="store_true")
     a = ap.parse_args()
     out = Path(a.out)

@@ -22,7 +22,7 @@ attitude), indirect single shooting with Levenberg–Marquardt from the costates
 direct optimum (``controls.pmp_residual``); its cost is the continuous optimum, a
 lower bound for every parametrization.
 
-Writes experiments/out/steer_sphere.{png,json,gif}.
+Writes steer_sphere.{png,json,gif} to ``--out`` (default: ./steer_sphere/).
 Usage: nhjax run steer_sphere [--target X Y] [--T SEC] [--degree N] [--heading RAD]
        [--no-pontryagin] [--out DIR]
 """
@@ -49,7 +49,7 @@ from controls.tasks import (
 from controls import newton as nt
 from nhjax.scenes import ShellWithTop
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("steer_sphere")  # under the working directory
 
 
 def warm_up(ocp, param, z, rtol):
@@ -288,7 +288,7 @@ if __name__ == "__main__":
     ap.add_argument("--degree", type=int, default=12, help="Chebyshev degree of each torque component")
     ap.add_argument("--heading", type=float, default=None, help="final yaw of the top [rad] (optional)")
     ap.add_argument("--no-pontryagin", action="store_true", help="skip the indirect method")
-    ap.add_argument("--out", default=str(OUT))
+    ap.add_argument("--out", type=Path, default=OUT, help="folder for the outputs (default: ./steer_sphere)")
     a = ap.parse_args()
     main(target=tuple(a.target), T=a.T, degree=a.degree, heading=a.heading, out=a.out,
          pontryagin=not a.no_pontryagin)

@@ -5,9 +5,10 @@ conditions (9.52) are garbled in our copy, so the cart starts at the origin
 heading up the slope (e1) at speed 0.3 and turning left at 0.25 rad/s. The
 engine's motion is compared with the closed form (a skate with effective slope
 acceleration m g sin(beta)/(m + 2 Jw/r^2)); cusps, energy and turning rate are
-reported. Writes experiments/out/two_wheeled_cart.{png,csv}.
+reported. Writes two_wheeled_cart.{png,csv} to ``--out`` (default: ./two_wheeled_cart/).
 """
 
+import argparse
 import csv
 from pathlib import Path
 
@@ -17,10 +18,11 @@ import numpy as np
 import nhjax
 from nhjax.scenes.two_wheeled_cart import TwoWheeledCart
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path("two_wheeled_cart")  # under the working directory
 
 
 def main(out=OUT):
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cart = TwoWheeledCart(a=0.5, Jc=1.0, Jw=0.5, g=0.3)
     x0 = cart.initial_state(speed=0.3, theta_dot=0.25)
@@ -74,4 +76,7 @@ def main(out=OUT):
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT,
+                    help="folder for the figure and the table (default: ./two_wheeled_cart)")
+    main(ap.parse_args().out)

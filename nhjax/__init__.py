@@ -6,8 +6,9 @@ simulations, and hand them to the optimal-control package ``controls``.
 
 float64 is switched on here, once, for the whole process: every result nhjax
 reports assumes it. So is XLA's compilation of small while loops as one function
-(``_xla_flags.py``: a single trajectory of a small system runs ~2x faster; import
-nhjax before the first JAX computation for it to apply), and JAX's persistent
+(``_xla_flags.py``: a small system's time-stepping loop runs as one function
+instead of launching its kernels one by one; import nhjax before the first JAX
+computation for it to apply), and JAX's persistent
 compilation cache in a user cache directory (``_cache.py``; ``NHJAX_CACHE_DIR``
 moves it, ``NHJAX_CACHE_DIR=0`` turns it off).
 """

@@ -67,7 +67,7 @@ def configure(environ=os.environ) -> str:
     if xla_bridge.backends_are_initialized():
         warnings.warn(
             "nhjax was imported after JAX's backend started, so XLA keeps compiling small "
-            "time-stepping loops kernel by kernel (single trajectories and batches ~2x slower "
+            "time-stepping loops kernel by kernel (single trajectories and batches run slower "
             "on the CPU). "
             "Import nhjax before the first JAX computation, or set "
             f"XLA_FLAGS='{_OPTION}{KEY}={nbytes}' before starting Python.",

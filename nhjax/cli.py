@@ -1,59 +1,58 @@
 """Command line: ``nhjax demo | list | run <experiment> | bench``.
 
-Experiments are scripts (``experiments/*.py``). The CLI finds them in two places,
-so that they run from a source checkout and from an installed package alike:
+Experiments are the modules of the package ``nhjax.experiments`` (the repository's
+``experiments/`` folder, installed under nhjax's namespace) and of any package
+registered in the entry-point group ``nhjax.experiments``, whose ``*.py`` modules
+(names not starting with ``_``) are experiments too; another project registers its
+package in its pyproject.toml::
 
-1. a source checkout: ``experiments/`` next to the ``nhjax`` package, when a
-   ``pyproject.toml`` sits beside it (``pip install -e .`` or ``PYTHONPATH``);
-2. the entry-point group ``nhjax.experiments``: each entry names a package whose
-   ``*.py`` files (names not starting with ``_``) are experiments. The nhjax
-   distribution registers its own ``experiments`` package there; another project
-   can register its package the same way in its pyproject.toml::
+    [project.entry-points."nhjax.experiments"]
+    mylab = "mylab_experiments"
 
-       [project.entry-points."nhjax.experiments"]
-       mylab = "mylab_experiments"
+``nhjax run NAME ARGS`` runs the module as ``python -m <package>.NAME ARGS`` does.
+Every experiment takes ``--out``: where its figures and tables go, by default a
+folder named for the experiment under the current directory (never inside the
+install). ``nhjax run NAME --help`` lists its options.
 
-Where outputs go: in a source checkout, where the script says (most write to the
-checkout's ``experiments/out/``). From an installed package, an experiment runs
-as if it were ``<workdir>/experiments/<name>.py`` with ``<workdir>`` as the
-current directory, so its outputs go to ``<workdir>/experiments/out/``;
-``<workdir>`` is ``--workdir`` (default: the current directory), never the
-read-only install.
+``nhjax bench`` runs ``benchmarks/run.py`` of a source checkout; an install without
+the checkout does not offer it (it is left out of ``--help`` and says so when asked).
 
 The CLI sits above both packages (``nhjax`` the simulator and ``controls`` the
 optimal control): ``nhjax demo`` runs the experiment ``optimal_somersault``,
-which imports ``controls``; nothing in the ``nhjax`` package imports it.
+which imports ``controls``; the simulator itself imports nothing from ``controls``.
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
+import importlib
 import importlib.resources
-import os
 import re
 import runpy
 import sys
-import types
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
 
+from .demos import somersault
+from .scenes import REGISTRY
+
 REPO = Path(__file__).resolve().parent.parent
 ENTRY_POINT_GROUP = "nhjax.experiments"
+#: nhjax's own experiments (the repository's experiments/ folder, installed here)
+OWN_PACKAGE = "nhjax.experiments"
 
 
 @dataclass(frozen=True)
 class Experiment:
-    """One experiment script: its ``name``, its ``source`` (a path or an
-    importlib.resources Traversable), where it was found (``origin``: "checkout"
-    or the entry point's name) and whether it runs in place (a checkout) or
-    relocated to a work directory (an installed package)."""
+    """One experiment: its ``name``, its ``module`` (``<package>.<name>``), its
+    ``source`` (an importlib.resources Traversable) and where it was found
+    (``origin``: "nhjax" or the entry point's name)."""
 
     name: str
+    module: str
     source: object
     origin: str
-    in_place: bool
 
     def text(self) -> str:
         return self.source.read_text()
@@ -84,31 +83,31 @@ class UnknownExperiment(KeyError):
     """No experiment of that name (the message lists the known ones)."""
 
 
-def _checkout_dir() -> Path | None:
-    d = REPO / "experiments"
-    return d if (REPO / "pyproject.toml").is_file() and d.is_dir() else None
+def _packages():
+    """(origin, package) of every experiment package: nhjax's own first, then the
+    entry-point group's."""
+    yield "nhjax", OWN_PACKAGE
+    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+        if ep.value != OWN_PACKAGE:
+            yield ep.name, ep.value
 
 
 def experiments() -> dict[str, Experiment]:
-    """Every experiment the CLI can run, by name (checkout first, then the
+    """Every experiment the CLI can run, by name (``nhjax.experiments`` first, then the
     entry-point group ``nhjax.experiments``; the first of a name wins)."""
     found: dict[str, Experiment] = {}
-    d = _checkout_dir()
-    if d is not None:
-        for p in sorted(d.glob("*.py")):
-            if not p.name.startswith("_"):
-                found.setdefault(p.stem, Experiment(p.stem, p, "checkout", True))
-    for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+    for origin, package in _packages():
         try:
-            root = importlib.resources.files(ep.value)
+            root = importlib.resources.files(package)
         except (ModuleNotFoundError, TypeError) as err:  # a stale registration must not break `nhjax list`
-            print(f"nhjax: entry point {ep.name} = {ep.value!r} in group {ENTRY_POINT_GROUP} "
-                  f"cannot be loaded ({err})", file=sys.stderr)
+            hint = ("; nhjax's experiments come with an install (pip install -e . in a checkout), not with "
+                    "PYTHONPATH" if package == OWN_PACKAGE else "")
+            print(f"nhjax: experiment package {package!r} ({origin}) cannot be loaded ({err}){hint}", file=sys.stderr)
             continue
         for f in sorted(root.iterdir(), key=lambda f: f.name):
             if f.is_file() and f.name.endswith(".py") and not f.name.startswith("_"):
                 name = f.name[:-3]
-                found.setdefault(name, Experiment(name, f, ep.name, False))
+                found.setdefault(name, Experiment(name, f"{package}.{name}", f, origin))
     return found
 
 
@@ -116,113 +115,89 @@ def _get(name: str) -> Experiment:
     exps = experiments()
     if name not in exps:
         known = ", ".join(exps) or "none"
-        raise UnknownExperiment(f"no experiment {name!r} (known: {known}); experiments come from experiments/ in a "
-                       f"source checkout or from packages registered in the entry-point group {ENTRY_POINT_GROUP}")
+        raise UnknownExperiment(f"no experiment {name!r} (known: {known}); experiments are the modules of "
+                                f"{OWN_PACKAGE} and of packages registered in the entry-point group "
+                                f"{ENTRY_POINT_GROUP}")
     return exps[name]
 
 
-def load_experiment(name: str) -> types.ModuleType:
+def load_experiment(name: str):
     """Import the experiment ``name`` as a module (not as ``__main__``), e.g. to call
     its functions; raises UnknownExperiment (a KeyError) listing the known names."""
-    exp = _get(name)
-    mod = types.ModuleType(f"nhjax_experiment_{name}")
-    with importlib.resources.as_file(exp.source) as path:
-        mod.__file__ = str(path)
-        code = compile(exp.text(), str(path), "exec")
-    sys.modules[mod.__name__] = mod  # dataclasses and pickling look the module up by name
-    exec(code, mod.__dict__)
-    return mod
+    return importlib.import_module(_get(name).module)
 
 
-@contextlib.contextmanager
-def _cwd(path: Path):
-    old = os.getcwd()
-    os.chdir(path)
-    try:
-        yield
-    finally:
-        os.chdir(old)
-
-
-def run_experiment(name: str, args=(), workdir=None) -> None:
-    """Run the experiment ``name`` as ``__main__`` with command-line ``args``.
-
-    From a checkout it runs in place. From an installed package it runs as
-    ``<workdir>/experiments/<name>.py`` in ``workdir`` (default: the current
-    directory), so outputs land in ``<workdir>/experiments/out/``.
-    """
+def run_experiment(name: str, args=()) -> None:
+    """Run the experiment ``name`` as ``__main__`` with command-line ``args``, as
+    ``python -m <package>.<name> ARGS`` would; its outputs go where its ``--out`` says
+    (by default a folder named for it under the current directory)."""
     exp = _get(name)
     argv = sys.argv
     try:
-        if exp.in_place:
-            sys.argv = [str(exp.source), *args]
-            runpy.run_path(str(exp.source), run_name="__main__")
-            return
-        work = Path(workdir or os.getcwd()).resolve()
-        (work / "experiments").mkdir(parents=True, exist_ok=True)
-        as_if = work / "experiments" / f"{name}.py"
-        with importlib.resources.as_file(exp.source) as real:
-            code = compile(exp.text(), str(real), "exec")  # tracebacks point at the installed file
-        sys.argv = [str(as_if), *args]
-        with _cwd(work):
-            exec(code, {"__name__": "__main__", "__file__": str(as_if), "__builtins__": __builtins__})
+        sys.argv = [f"nhjax run {name}", *args]
+        runpy.run_module(exp.module, run_name="__main__", alter_sys=True)  # __main__ is the experiment
     finally:
         sys.argv = argv
 
 
+def _bench_script() -> Path | None:
+    """benchmarks/run.py of the source checkout this nhjax runs from, if any."""
+    script = REPO / "benchmarks" / "run.py"
+    return script if (REPO / "pyproject.toml").is_file() and script.is_file() else None
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="nhjax", description=plain(__doc__.splitlines()[0]))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    bench = _bench_script()
+    if bench is None and argv[:1] == ["bench"]:
+        print("nhjax bench: the benchmarks are not installed with nhjax; they run from a source checkout "
+              "(git clone, then `make bench` there)", file=sys.stderr)
+        return 2
+    commands = "demo | list | run <experiment>" + (" | bench" if bench is not None else "")
+    parser = argparse.ArgumentParser(prog="nhjax", description=f"Command line: nhjax {commands}.")
     sub = parser.add_subparsers(dest="cmd", required=True)
     p_demo = sub.add_parser("demo", help="optimize the falling cat's somersault, then show it (numbers, figures)")
-    p_demo.add_argument("--out", default="experiments/out", help="directory for figures and JSON")
+    p_demo.add_argument("--out", default=None,
+                        help="folder for figures and JSON (default: ./optimal_somersault, or ./somersault "
+                             "with --holonomy)")
     p_demo.add_argument("--no-figures", action="store_true")
     p_demo.add_argument("--holonomy", action="store_true",
                         help="instead: the torque-driven somersault along a closed-form holonomy loop")
     sub.add_parser("list", help="list scenes and experiments")
-    p_run = sub.add_parser("run", help="run an experiment (experiments/ or a registered package)")
-    p_run.add_argument("--workdir", default=None,
-                       help="installed package only: run in this directory; outputs go to "
-                            "WORKDIR/experiments/out (default: the current directory)")
+    p_run = sub.add_parser("run", help="run an experiment (nhjax.experiments or a registered package); "
+                                       "nhjax run NAME --help shows its options")
     p_run.add_argument("experiment")
     p_run.add_argument("args", nargs=argparse.REMAINDER)
-    p_bench = sub.add_parser("bench", help="run the benchmarks (needs the [bench] extra)")
-    p_bench.add_argument("args", nargs=argparse.REMAINDER)
+    if bench is not None:  # a source checkout: benchmarks/ beside the package
+        p_bench = sub.add_parser("bench", help="run the benchmarks (needs the [bench] extra)")
+        p_bench.add_argument("args", nargs=argparse.REMAINDER)
     args = parser.parse_args(argv)
 
     if args.cmd == "demo":
         if args.holonomy:
-            from .demos import somersault
-
-            somersault(out=args.out, figures=not args.no_figures)
+            somersault(out=args.out or "somersault", figures=not args.no_figures)
             return 0
-        demo_args = ["--out", args.out] + (["--no-figures"] if args.no_figures else [])
+        demo_args = (["--out", args.out] if args.out else []) + (["--no-figures"] if args.no_figures else [])
         return main(["run", "optimal_somersault", *demo_args])
     if args.cmd == "list":
-        from .scenes import REGISTRY
-
         print("scenes (nhjax.scenes):")
         for name, (_, desc) in REGISTRY.items():
             print(f"  {name:24s} {desc}")
         exps = experiments()
-        print("experiments (nhjax run <name>):" if exps else
-              f"experiments: none found (no checkout next to this install, nothing in {ENTRY_POINT_GROUP})")
+        print("experiments (nhjax run <name>):" if exps else "experiments: none found")
         for name, exp in exps.items():
             print(f"  {name:24s} {exp.doc_line()}")
         return 0
     if args.cmd == "run":
         try:
-            run_experiment(args.experiment, args.args, workdir=args.workdir)
+            run_experiment(args.experiment, args.args)
         except UnknownExperiment as err:
             print(f"nhjax run: {err.args[0]}", file=sys.stderr)
             return 2
         return 0
     if args.cmd == "bench":
-        script = REPO / "benchmarks" / "run.py"
-        if not script.is_file():
-            print("nhjax bench: benchmarks/ is not next to this install (use a source checkout)", file=sys.stderr)
-            return 2
-        sys.argv = [str(script), *args.args]
-        runpy.run_path(str(script), run_name="__main__")
+        sys.argv = [str(bench), *args.args]
+        runpy.run_path(str(bench), run_name="__main__")
         return 0
     return 2
 

@@ -1,9 +1,7 @@
-"""The demos behind ``nhjax demo``.
+"""The demo behind ``nhjax demo --holonomy``.
 
-``optimal_somersault`` (the default): optimize the somersault, then show it.
-It uses ``controls`` and therefore lives in experiments/optimal_somersault.py
-(the simulator package imports nothing from ``controls``); the function here
-only looks it up through the experiment registry.
+(``nhjax demo`` itself optimizes the somersault: that uses ``controls``, so it is the
+experiment ``nhjax.experiments.optimal_somersault``, run by the CLI.)
 
 ``somersault``: the falling cat turns by pi at zero angular momentum. The shape
 loop (bend, twist once, unbend) is chosen from the closed-form holonomy
@@ -35,7 +33,7 @@ def _timed(fn):
     return out, time.perf_counter() - t
 
 
-def somersault(out="experiments/out", rtol=1e-10, atol=1e-10, figures=True, turn=np.pi):
+def somersault(out="somersault", rtol=1e-10, atol=1e-10, figures=True, turn=np.pi):
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cat = FallingCat.from_dimensions(mass=1.0, length=1.0, radius=0.25)
@@ -106,20 +104,3 @@ def somersault(out="experiments/out", rtol=1e-10, atol=1e-10, figures=True, turn
         plotting.shape_path_figure(cat, traj, path=out / "somersault_shape.png", closed_form_turn=float(loop.turn))
         print(f"  figures: {out / 'somersault_3d.png'}, {out / 'somersault_shape.png'}")
     return summary
-
-
-def optimal_somersault(out="experiments/out", figures=True, theta0=0.6, T=2.0, turn=np.pi,
-                       start_windings=(1, 0, -1)):
-    """``nhjax demo``: optimize the somersault, then show it.
-
-    Kept for callers of ``nhjax.demos.optimal_somersault``; the demo itself is the
-    experiment ``optimal_somersault`` (experiments/optimal_somersault.py), found
-    through the experiment registry (``nhjax.cli.experiments``) because it uses
-    ``controls`` and the simulator package imports nothing from ``controls``.
-    Arguments and return value as there.
-    """
-    from .cli import load_experiment
-
-    mod = load_experiment("optimal_somersault")
-    return mod.optimal_somersault(out=out, figures=figures, theta0=theta0, T=T, turn=turn,
-                                  start_windings=start_windings)

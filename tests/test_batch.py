@@ -172,7 +172,7 @@ def test_group_valued_states_projection_jumps_and_other_solvers():
 def test_angles_beyond_the_fast_sine_range_rerun_with_the_library_sine():
     """A control phase of 1e7 rad puts sin/cos arguments beyond fast_trig.LIMIT: the
     chunk reports it and is solved again with libm's functions, matching simulate()."""
-    from nhjax.integrate import batch
+    from nhjax.integrate import _local_batch as batch
 
     cat = FallingCat()
     X = jnp.stack([cat.initial_state(0.8, chi_dot=0.5), cat.initial_state(0.9, chi_dot=1.0)])
@@ -349,7 +349,7 @@ def test_new_values_of_the_same_structure_do_not_trace_again():
     tolerances, horizon or number of members (within a chunk's capacity) reuses the
     compiled chunk: no new trace and no new compile (counted), and the results are the
     new ones."""
-    from nhjax.integrate import batch
+    from nhjax.integrate import _local_batch as batch
 
     compiles = []
 

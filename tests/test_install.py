@@ -1,7 +1,8 @@
 """nhjax as an installed library: a wheel built from this checkout, installed into a
-fresh virtual environment, gives a working ``nhjax`` CLI that lists and runs the
-experiments (found through the ``nhjax.experiments`` entry-point group, not a
-checkout), and the simulator package imports nothing from ``controls``.
+fresh virtual environment (not editable), gives a working ``nhjax`` CLI that lists and
+runs the experiments from ``nhjax.experiments`` (the repository's experiments/ folder,
+installed under nhjax's namespace: no top-level ``experiments`` in site-packages), and
+does not offer ``nhjax bench`` (the benchmarks live in a checkout only).
 
 The fresh venv sees the already-installed dependencies of the running
 interpreter through a .pth line (the wheel itself goes in with ``--no-deps``), so
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import ast
 import os
+import tomllib
 import shutil
 import subprocess
 import sys
@@ -48,6 +50,29 @@ def test_checkout_lists_every_experiment_script():
     on_disk = {p.stem for p in (REPO / "experiments").glob("*.py") if not p.name.startswith("_")}
     assert on_disk <= set(exps)
     assert "optimal_somersault" in exps and "__init__" not in exps
+
+
+def test_pyproject_lists_every_package_of_the_checkout():
+    """pyproject.toml lists the packages (find would take experiments/ for a top-level
+    package): every folder with an __init__.py is there, experiments/ as nhjax.experiments."""
+    tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    on_disk = {".".join(p.parent.relative_to(REPO).parts) for d in ("nhjax", "controls")
+               for p in (REPO / d).rglob("__init__.py")}
+    assert set(tool["packages"]) == on_disk | {"nhjax.experiments"}
+    assert tool["package-dir"] == {"nhjax.experiments": "experiments"}
+
+
+def test_every_experiment_takes_out_defaulting_to_its_name(capsys):
+    """``nhjax run NAME --help`` for every experiment: its own options, among them
+    ``--out`` with a folder named for it as the default; nothing runs."""
+    from nhjax.cli import experiments, main
+
+    for name in experiments():
+        with pytest.raises(SystemExit) as e:
+            main(["run", name, "--help"])
+        assert e.value.code == 0, name
+        out = capsys.readouterr().out
+        assert "--out" in out and f"./{name}" in out, (name, out)
 
 
 def test_unknown_experiment_is_a_clear_error(capsys):
@@ -89,15 +114,48 @@ def installed(tmp_path_factory):
                    check=True, env=_clean_env())
     work = tmp / "work"
     work.mkdir()
-    where = subprocess.run([str(py), "-c", "import nhjax, controls, experiments; "
-                            "print(nhjax.__file__); print(controls.__file__); print(experiments.__file__)"],
+    where = subprocess.run([str(py), "-c", "import nhjax, controls, nhjax.experiments as e; "
+                            "print(nhjax.__file__); print(controls.__file__); print(e.__file__)"],
                            check=True, capture_output=True, text=True, env=_clean_env(), cwd=work).stdout.split()
     assert all(w.startswith(str(venv)) for w in where), where  # from the wheel, not this checkout
-    return venv / "bin", work
+    return venv / "bin", work, Path(site)
+
+
+def test_no_top_level_experiments_package_is_installed(installed):
+    """The wheel installs nhjax (with nhjax.experiments inside) and controls, nothing
+    else at the top of site-packages: ``import experiments`` fails in the install."""
+    bin_dir, work, site = installed
+    (record,) = site.glob("nhjax-*.dist-info/RECORD")
+    paths = [line.split(",")[0] for line in record.read_text().splitlines() if line]
+    tops = {p.split("/")[0] for p in paths if not p.startswith("..")}  # "../../../bin/nhjax": the script
+    assert tops == {"nhjax", "controls", record.parent.name}, tops
+    assert (site / "nhjax" / "experiments" / "cat_holonomy.py").is_file()
+    assert not (site / "experiments").exists()
+    r = subprocess.run([str(bin_dir / "python"), "-c", "import experiments"], capture_output=True, text=True,
+                       env=_clean_env(), cwd=work)
+    assert r.returncode != 0 and "No module named 'experiments'" in r.stderr, r.stderr
+
+
+def test_installed_run_help_and_no_bench(installed):
+    """From the install: ``nhjax run NAME --help`` shows the experiment's own options
+    (its --out defaults to a folder named for it) without running it; ``nhjax bench``
+    is not offered (absent from --help; asked for, a clear message and exit 2)."""
+    bin_dir, work, _ = installed
+    for name in ("cat_holonomy", "steer_sphere"):  # one on nhjax alone, one on controls
+        r = subprocess.run([str(bin_dir / "nhjax"), "run", name, "--help"], capture_output=True, text=True,
+                           env=_clean_env(), cwd=work)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert "--out" in r.stdout and f"./{name}" in r.stdout, r.stdout
+    assert sorted(p.name for p in work.iterdir()) == []  # --help wrote nothing
+    r = subprocess.run([str(bin_dir / "nhjax"), "--help"], capture_output=True, text=True, env=_clean_env(),
+                       cwd=work, check=True)
+    assert "{demo,list,run}" in r.stdout and "bench" not in r.stdout, r.stdout
+    r = subprocess.run([str(bin_dir / "nhjax"), "bench"], capture_output=True, text=True, env=_clean_env(), cwd=work)
+    assert r.returncode == 2 and "source checkout" in r.stderr, (r.returncode, r.stderr)
 
 
 def test_installed_cli_lists_experiments(installed):
-    bin_dir, work = installed
+    bin_dir, work, _ = installed
     out = subprocess.run([str(bin_dir / "nhjax"), "list"], check=True, capture_output=True, text=True,
                          env=_clean_env(), cwd=work).stdout
     assert "experiments (nhjax run <name>):" in out
@@ -109,14 +167,15 @@ def test_installed_cli_lists_experiments(installed):
 
 @pytest.mark.slow
 def test_installed_cli_runs_an_experiment(installed):
-    """cat_holonomy from the wheel: its CSV lands in <workdir>/experiments/out and holds
-    simulated turns that match the closed form -2 pi f(theta) (the script's own check)."""
-    bin_dir, work = installed
+    """cat_holonomy from the wheel: its CSV lands in ./cat_holonomy/ under the working
+    directory and holds simulated turns that match the closed form -2 pi f(theta) (the
+    script's own check)."""
+    bin_dir, work, _ = installed
     res = subprocess.run([str(bin_dir / "nhjax"), "run", "cat_holonomy"], capture_output=True, text=True,
                          env=_clean_env(), cwd=work)
     assert res.returncode == 0, res.stderr[-3000:]
-    csv = work / "experiments" / "out" / "cat_holonomy.csv"
-    assert csv.is_file() and (work / "experiments" / "out" / "cat_holonomy.png").is_file()
+    csv = work / "cat_holonomy" / "cat_holonomy.csv"
+    assert csv.is_file() and (work / "cat_holonomy" / "cat_holonomy.png").is_file()
     import numpy as np
 
     rows = np.genfromtxt(csv, delimiter=",", names=True)

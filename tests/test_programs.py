@@ -134,7 +134,7 @@ ctrl = nhjax.Sinusoids([0.0, 0.0], [0.3, 0.2], [2.0, 3.0], [0.0, np.pi / 2])
 tr = nhjax.simulate(cat, cat.initial_state(0.9, chi_dot=0.3), 3.0, control=ctrl)
 X = np.stack([np.asarray(cat.initial_state(th, chi_dot=0.3)) for th in np.linspace(0.7, 1.1, 6)])
 bt = nhjax.simulate_batch(cat, X, 3.0, control=ctrl, saveat=2)
-batch = importlib.import_module("nhjax.integrate.batch")
+batch = importlib.import_module("nhjax.integrate._local_batch")
 print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), drift={k: float(v) for k, v in tr.invariant_drift.items()},
                       batch=np.asarray(bt.x_final).tolist(), steps=np.asarray(bt.num_accepted_steps).tolist(),
                       traces=sim.TRACES["solve"], batch_traces=batch.TRACES["lockstep"], stats=_programs.STATS)))

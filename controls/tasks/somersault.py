@@ -39,7 +39,8 @@ import numpy as np
 from nhjax.scenes import FallingCat, FallingCatKinematic
 from nhjax.scenes.falling_cat import FallingCatSmooth
 
-from ..direct import DirectResult, solve_direct
+from .._result import DirectResult
+from ..direct import solve_direct
 from ..parametrize import Chebyshev, fit_samples, prepare_fit
 from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V

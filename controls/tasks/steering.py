@@ -59,10 +59,10 @@ every later torque, and the vertical angular momentum about the contact point
 (it must return to zero, and it does not stay zero by itself when the top's
 inertia is not symmetric about the direction of travel) is changed only by the
 second-order term -mt (V x v_c) . gamma. ``controls.solve_direct`` (augmented
-Lagrangian, L-BFGS inner solves) crawls on this (measured: ~150 s per outer
-iteration, violation 2.5e-2 then 2.2e-3); ``controls.solve_direct_newton`` (feasible-path
-Newton with second derivatives by differences of reverse-mode gradients) gets
-the optimum in 7-9 iterations: cost 0.0813126 (Chebyshev degree 6) and
+Lagrangian, L-BFGS inner solves) crawls on this (hundreds of inner steps per outer
+iteration, the constraints still violated after several); ``controls.solve_direct_newton``
+(feasible-path Newton with second derivatives by differences of reverse-mode gradients)
+gets the optimum in a few iterations: cost 0.0813126 (Chebyshev degree 6) and
 0.0812912 (degree 12) N^2 m^2 s. Along the optimum the free top turns by ~1 rad
 about the vertical (tau_3 stays near 0: the turn comes from the swing).
 

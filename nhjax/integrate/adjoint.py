@@ -2,8 +2,9 @@
 
 Differentiating diffrax's while loop directly (``RecursiveCheckpointAdjoint``)
 replays the whole solver machinery -- step-size controller, saving, event
-checks, loop bookkeeping -- under checkpointing, and on a small system costs
-127-286 forward solves (benchmarks/batch_throughput.py). What a gradient of a
+checks, loop bookkeeping -- under checkpointing, which on a small system costs
+many forward solves (benchmarks/batch_throughput.py measures how many). What a
+gradient of a
 Runge-Kutta solution needs is much less: the accepted steps t_0 < t_1 < ... <
 t_M with their states y_k, and the vector-Jacobian product of each step map
 

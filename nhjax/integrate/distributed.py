@@ -38,7 +38,8 @@ import jax.tree_util as jtu
 import numpy as np
 
 from ..errors import ParameterError
-from .batch import BatchError, BatchTrajectory, simulate_batch
+from ._batch_types import BatchError, BatchTrajectory
+from ._local_batch import simulate_batch_local
 
 __all__ = ["simulate_batch_on_client"]
 
@@ -68,8 +69,8 @@ def _run_chunk(index, system, x0, control, t1, kwargs, on_chunk):
     """On a worker: the chunk's simulate_batch, as host numpy arrays (cheap to send)."""
     if on_chunk is not None:
         on_chunk(index)
-    traj = simulate_batch(system, x0, t1, control=control, on_error="return", on_guard="stop",
-                          progress=False, **kwargs)
+    traj = simulate_batch_local(system, x0, t1, control=control, on_error="return", on_guard="stop",
+                                progress=False, **kwargs)
     return jax.device_get(traj)
 
 

@@ -107,7 +107,7 @@ from .. import _primitive, _programs
 from .._validate import (check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
-from .batch import BatchError, MemberStatuses
+from ._batch_types import BatchError, MemberStatuses
 from ..mechanics.impacts import (
     _contact_kkt,
     _impact_from_geometry,

@@ -74,7 +74,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._validate import function, in_range
+from .._args import function, in_range
 from ..errors import ParameterError
 from .lagrangian import ConstrainedLagrangian
 

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import jax.scipy.linalg
 import numpy as np
 
+from .. import _args as Vd
 from ._kkt import (
     REGULARITY_HINTS,
     kkt_accelerations,
@@ -49,8 +50,6 @@ __all__ = ["ConstrainedLagrangian", "Lagrangian"]
 
 def baumgarte_pair(owner, gains):
     """(alpha, beta) [1/s]: two finite, non-negative Baumgarte gains."""
-    from .. import _validate as Vd
-
     try:
         a, b = gains
     except (TypeError, ValueError):
@@ -71,9 +70,9 @@ class ConstrainedLagrangian(AbstractSystem):
     n: eqx.AbstractVar[int]
     regularity_hints = REGULARITY_HINTS
     # The engine's vector field (mass matrix and constraint Jacobian by autodiff, a KKT
-    # solve) is large: tracing it once per step instead of once per stage cut the first
-    # simulate() of the shipped scenes by 0.5-17 s (benchmarks/compile_times.py; e.g. the
-    # engine cat 27.1 -> 10.4 s, RollingDisk 6.6 -> 3.7 s) at the same or lower run time.
+    # solve) is large: tracing it once per step instead of once per stage shortens the
+    # compile of every shipped scene's first simulate(), most for the largest vector
+    # fields, at the same or lower run time (benchmarks/compile_times.py measures it).
     large_vector_field = True
 
     # ----------------------------------------------------------- to override
@@ -422,8 +421,6 @@ class Lagrangian(ConstrainedLagrangian):
         invariants=None,
         free_invariants=None,
     ):
-        from .. import _validate as Vd
-
         owner = "Lagrangian"
         self.state_names = _state_names(owner, state_names, int(n) if isinstance(n, (int, np.integer)) else n)
         self.user_invariants = _invariant_table(owner, "invariants", invariants)

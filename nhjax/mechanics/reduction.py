@@ -100,7 +100,7 @@ import numpy as np
 
 from .. import _primitive, _programs
 from .._primitive import stored as _stored
-from .. import _validate as V
+from .. import _args as V
 from ..errors import ParameterError, StateError
 from ..lie import se2, so3
 from ..lie.spaces import Euclidean, SO3Body
@@ -336,7 +336,7 @@ def _symmetry(group):
 def _check_inertias(J, given):
     """Planar moments >= 0; spatial tensors symmetric positive semidefinite (zero: a
     point mass; the kinetic energy is then >= 0, as for ``RigidBody``) with principal
-    moments that obey the triangle inequality (``nhjax._validate.inertias``)."""
+    moments that obey the triangle inequality (``nhjax._args.inertias``)."""
     if J.ndim == 1:
         if not np.all(J >= 0):
             raise ParameterError(f"Bodies: inertias must be non-negative [kg m^2], got {J.tolist()}",

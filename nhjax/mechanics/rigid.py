@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import _args as Vd
 from ..lie import so3
 
 __all__ = [
@@ -36,8 +37,6 @@ def cylinder_inertia(mass, length, radius):
 
     I_transverse = m (3 r^2 + L^2) / 12,  I_axial = m r^2 / 2   [kg m^2].
     """
-    from .. import _validate as Vd
-
     mass = Vd.positive("mass", mass, owner="cylinder_inertia", what="[kg]")
     length = Vd.positive("length", length, owner="cylinder_inertia", what="[m]")
     radius = Vd.positive("radius", radius, owner="cylinder_inertia", what="[m]")
@@ -51,8 +50,6 @@ class RigidBody(eqx.Module):
     inertia: jax.Array
 
     def __check_init__(self):
-        from .. import _validate as Vd
-
         if Vd.is_traced(self.mass, self.inertia):
             return
         Vd.positive("mass", self.mass, owner="RigidBody", what="[kg]")
@@ -64,8 +61,6 @@ class RigidBody(eqx.Module):
     @classmethod
     def solid_cylinder(cls, mass, length, radius, axis: int = 1):
         """Solid cylinder with its symmetry axis along body axis ``axis``."""
-        from .. import _validate as Vd
-
         axis = Vd.choice("axis", axis, (0, 1, 2), owner="RigidBody.solid_cylinder")
         it, ia = cylinder_inertia(mass, length, radius)
         diag = jnp.full((3,), it).at[axis].set(ia)
@@ -99,8 +94,6 @@ class MultibodyKinetics(eqx.Module):
     poses: Callable
 
     def __check_init__(self):
-        from .. import _validate as Vd
-
         if not all(isinstance(b, RigidBody) for b in self.bodies):
             raise Vd.ParameterError("MultibodyKinetics: bodies must be a tuple of nhjax.mechanics.RigidBody",
                                     "bodies", self.bodies)

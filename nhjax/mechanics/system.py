@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 
+from .._args import single_member
 from ..lie.spaces import Euclidean
 
 __all__ = ["AbstractSystem"]
@@ -142,7 +143,7 @@ _DEPTH = threading.local()  # initial_state helpers calling another's (checked o
 
 def _checked_initial_state(fn):
     """``fn`` (a subclass's ``initial_state``) after the check of the module docstring:
-    the system holds one parameter set (``_validate.single_member``; host-side, no
+    the system holds one parameter set (``nhjax._args.single_member``; host-side, no
     program)."""
 
     @functools.wraps(fn)
@@ -150,8 +151,6 @@ def _checked_initial_state(fn):
         depth = getattr(_DEPTH, "n", 0)
         if depth:
             return fn(self, *args, **kwargs)
-        from .._validate import single_member
-
         single_member(self, owner=f"{type(self).__name__}.initial_state")
         _DEPTH.n = depth + 1
         try:

@@ -481,8 +481,8 @@ class FallingCatAttitudes(_CatGeometry, AbstractSystem):
 
     state_names: ClassVar[tuple] = ()
     control_dim: ClassVar[int] = 2
-    # stages in a lax.scan: first simulate() 6.1 -> 4.3 s, and runs faster too (6.7 -> 4.5 ms
-    # for 10 s of the benchmark's torque motion)
+    # stages in a lax.scan: the vector field is traced once per step, not once per stage,
+    # for a shorter first compile at no cost in run time (benchmarks/compile_times.py)
     large_vector_field: ClassVar[bool] = True
 
     def __init__(self, I1=0.09895833333333333, lam=0.31578947368421056, B=2.5263157894736845, mass=1.0,
