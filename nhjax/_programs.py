@@ -408,8 +408,9 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     if program is None:
         exe_path = folder / f"{key}-{_machine()}.exe"
         if background and exe_path.exists():
-            # loading links the executable's machine code (~0.1 s per MB here), with the
-            # GIL released: in the background, beside the caller's work and other loads
+            # loading links the executable's machine code (its time grows with the
+            # code's size), with the GIL released: in the background, beside the
+            # caller's work and other loads
             program = _compiler().submit(_load_or_raise, exe_path)
         else:
             program = _load_executable(exe_path)
@@ -721,10 +722,11 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
     lowered now, in the calling thread (tracing reads process-wide settings such as
     equinox's error mode, which only the caller knows to be right), and compiled by XLA
     in a background thread, which releases the GIL: a solver that will need several
-    programs compiles the later ones while it compiles and runs the first (2 cores:
-    about the XLA time of the smaller one saved). The call that needs it waits for that
-    compile. An executable on disk is loaded in the background too (loading links its
-    machine code, about a tenth of a second per MB here); a program in memory is left
+    programs compiles the later ones while it compiles and runs the first (on two
+    cores, the XLA time of the smaller one overlaps the other's). The call that needs it
+    waits for that compile. An executable on disk is loaded in the background too
+    (loading links its machine code, in a time that grows with its size); a program in
+    memory is left
     alone. ``compiler_options`` as for ``call`` (the call must pass the same). Returns
     whether this call started background work (a compile or a load)."""
     flat = jtu.tree_flatten(args)

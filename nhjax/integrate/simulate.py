@@ -400,8 +400,9 @@ def _project_saved(system, x0, t0, ts_saved, xs, t_end, x_end):
 
     # a loop over the rows, not vmap: the batched projection (batched Jacobians and
     # LAPACK solves) is a second, larger program beside the step's own projection;
-    # one row at a time XLA compiled 0.7-1.6 s less of it for the scenes with
-    # constraints (BallInCone, ThreeCylinders), for ~0.7-1 ms more per solve
+    # one row at a time reuses the step's projection, a smaller program to compile for
+    # the scenes with constraints (BallInCone, ThreeCylinders), at the price of a slightly
+    # longer run (benchmarks/compile_times.py measures both)
     rows = (jnp.concatenate([ts_saved, jnp.reshape(t_end, (1,)).astype(ts_saved.dtype)]),
             jtu.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), xs, x_end))
     out = jax.lax.map(lambda row: onto(*row), rows)
