@@ -47,6 +47,7 @@ def test_batched_parameters_and_controls():
         nhjax.simulate_batch(FallingCat(lam=lams), x0, 1.0, in_axes={"system": 0})
 
 
+@pytest.mark.slow  # (bad members named: test_sweep_mode_returns_every_members_status; make test-all)
 def test_bad_members_are_named():
     cat = FallingCat()
     X = jnp.tile(cat.initial_state(0.8, chi_dot=0.5), (6, 1))
@@ -280,7 +281,9 @@ def test_two_workers_running_a_projected_batch_at_once_finish(tmp_path):
     assert most > fewest  # members of different lengths
 
 
-@pytest.mark.parametrize("lanes, saveat", [(3, "times"), (8, "times"), pytest.param(8, "many", marks=pytest.mark.slow),
+# (3 lanes: refilled more often; 8 lanes over 20 members refill too, and finish one lane at a time)
+@pytest.mark.parametrize("lanes, saveat", [pytest.param(3, "times", marks=pytest.mark.slow), (8, "times"),
+                                           pytest.param(8, "many", marks=pytest.mark.slow),
                                            pytest.param(8, 2, marks=pytest.mark.slow)])
 def test_refilled_lanes_give_each_member_its_own_solve(lanes, saveat):
     """Members whose step counts differ more than 10x, fewer lanes than members (each lane
@@ -383,6 +386,7 @@ def test_new_values_of_the_same_structure_do_not_trace_again():
         np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.slow  # (the work itself: test_diagnostics_honest; make test-all)
 def test_work_tracking_leaves_the_steps_alone_and_is_on_where_it_is_the_only_report():
     """The work of the inputs stays out of the error norm: the same states and steps with
     and without it. A batch tracks it by default only for a system with no invariant or
@@ -407,6 +411,7 @@ def test_work_tracking_leaves_the_steps_alone_and_is_on_where_it_is_the_only_rep
     assert float(tr.invariant_drift["energy - work"].max()) < 1e-6  # energies ~1-2 J, rtol 1e-8
 
 
+@pytest.mark.slow  # (group checks of x0: test_validation; per-member reports: test_sweep_mode_returns_every_members_status; make test-all)
 def test_members_off_their_group_are_named_and_not_solved():
     """Each member's attitude is checked for membership of SO(3) (the validation layer's
     member report, vmapped in the chunk): a scaled rotation is a bad x0; with

@@ -234,6 +234,7 @@ def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
             np.testing.assert_allclose(r.cost, ref.cost, rtol=1e-10)
 
 
+@pytest.mark.slow  # (the quick program's answers: test_somersault_ocp; make test-all)
 def test_the_variational_jacobian_of_the_quick_program_is_the_forward_mode_one():
     """The quick Pontryagin program's residual Jacobian comes from the variational
     equations integrated beside the extremal (steps chosen on (x, p, J) alone); the

@@ -90,6 +90,7 @@ def test_new_numbers_do_not_retrace_and_reach_their_own_optimum():
         np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
 
 
+@pytest.mark.slow  # (stored solver programs in a new process: test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them; make test-all)
 def test_prepared_solver_programs_are_the_ones_the_solvers_call(tmp_path, monkeypatch):
     """prepare_pontryagin and prepare_pmp_residual trace the programs that
     solve_pontryagin and pmp_residual then call (compiled in the background

@@ -17,6 +17,7 @@ import sys
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 import nhjax
 from nhjax.scenes import FallingCat
@@ -107,6 +108,7 @@ def _first_impact(h, adjoint="forward"):
                                   adjoint=adjoint).impact_times[0]
 
 
+@pytest.mark.slow  # (impact-time derivatives against differences: test_impacts_grad, test_bouncing_ball; make test-all)
 def test_impact_times_differentiate_in_both_modes_whatever_adjoint_was_asked():
     """The stored programs give each mode its own loop: grad of a solve set up for forward
     mode (adjoint="forward", the default) works, and agrees with jacfwd and differences."""

@@ -138,6 +138,7 @@ def test_gradient_through_reduced_dynamics(zero_momentum_chain):
     assert float(jnp.abs(g).min()) > 1e-3
 
 
+@pytest.mark.slow  # (batch = single: test_batch on the cat; make test-all)
 def test_batch_equals_single(zero_momentum_chain):
     """simulate_batch on the reduced system: each member as simulate() alone (velocity
     control along shape loops of different sizes: different step counts)."""

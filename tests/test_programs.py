@@ -301,6 +301,7 @@ def test_quick_options_are_a_program_of_their_own_and_prepare_passes_them_on(tmp
     np.testing.assert_allclose(quick["z"], ref, rtol=1e-14, atol=1e-15)
 
 
+@pytest.mark.slow  # (stored solves in a new process: test_a_new_process_loads_the_solve_instead_of_tracing_it; make test-all)
 def test_scene_states_from_numbers_are_one_cached_program_and_the_traced_ones_agree(tmp_path, monkeypatch):
     """Scene helpers that build a state from numbers (small_call): with concrete numbers
     one program, stored in the cache and loaded back by a new process without a trace;

@@ -134,7 +134,7 @@ def _count(jaxpr, name) -> int:
                for e in jaxpr.eqns)
 
 
-@pytest.mark.parametrize("vmapped", [False, True])
+@pytest.mark.parametrize("vmapped", [False, pytest.param(True, marks=pytest.mark.slow)])  # (the batch: make test-all)
 def test_first_stage_in_the_stage_scan_is_the_same_solve_with_one_copy_of_the_vector_field(reference, vmapped):
     """RKMK45(first_stage_in_scan=True) (simulate's single solves) evaluates the FSAL
     first stage of the first step inside its stage scan instead of in init: the same
