@@ -166,7 +166,10 @@ def test_group_valued_states_projection_jumps_and_other_solvers():
     tr = nhjax.simulate_batch(cat, X, 3.0, lanes=1, **kw)
     for i in range(2):
         one = nhjax.simulate(cat, X[i], 3.0, saveat=2, **kw)
-        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-13, atol=1e-13)
+        # the same steps (below); the values to 1e-12 as above: the chunk and simulate()'s
+        # solve are programs compiled apart, whose last bits differ (8.8e-13 under the
+        # tests' unoptimized LLVM pipeline, conftest.py)
+        np.testing.assert_allclose(tr.xs[i], one.xs, rtol=1e-12, atol=1e-12)
         assert int(tr.num_steps[i]) == int(one.num_steps)
 
 
