@@ -108,6 +108,7 @@ from .._validate import (check_saveat, choice, first_failures, integer, positive
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
 from ._batch_types import BatchError, MemberStatuses
+from .simulate import _save_times
 from ..mechanics.impacts import (
     _contact_kkt,
     _impact_from_geometry,
@@ -1097,12 +1098,7 @@ def simulate_impacts(
         ts = "steps"
     else:
         check_saveat(saveat, t0, t1, owner=owner)
-        if isinstance(saveat, (int, np.integer)) and _concrete(t0, t1):
-            ts = to_device(np.linspace(float(t0), float(t1), int(saveat)))  # (no program of its own)
-        elif isinstance(saveat, (int, np.integer)):
-            ts = jnp.linspace(t0, t1, int(saveat))
-        else:
-            ts = to_device(saveat)
+        ts = _save_times(saveat, t0, t1)
     if dtmax is None:
         dtmax = getattr(system, "event_resolution", None)
     arr = lambda v: None if v is None else to_device(v)  # noqa: E731 (no recompiles)
@@ -1451,10 +1447,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
         raise BatchError("bad inputs", members, [reasons[j] for j in members], [float(t0)] * len(members))
     good = np.setdiff1d(np.arange(B), np.asarray(list(reasons), int))
 
-    if isinstance(saveat, (int, np.integer)):
-        ts = None if saveat == 0 else to_device(np.linspace(float(t0), float(t1), int(saveat)))
-    else:
-        ts = jnp.asarray(saveat, float)
+    ts = None if isinstance(saveat, (int, np.integer)) and saveat == 0 else _save_times(saveat, t0, t1)
     if "dtmax" not in options:
         options["dtmax"] = getattr(sys0, "event_resolution", None)
     opts = {k_: (to_device(v) if isinstance(v, float) else v) for k_, v in options.items()}

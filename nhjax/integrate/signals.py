@@ -46,7 +46,7 @@ class Sinusoids(eqx.Module):
         self.offset = _at_least_1d(real("offset", offset, owner=owner, what="input units"))
         self.amplitude = _at_least_1d(real("amplitude", amplitude, owner=owner, what="input units"))
         self.omega = _at_least_1d(real("omega", omega, owner=owner, what="angular frequency [rad/s]"))
-        self.phase = (_at_least_1d(np.zeros(jnp.shape(self.omega))) if phase is None
+        self.phase = (to_device(np.zeros(jnp.shape(self.omega))) if phase is None
                       else _at_least_1d(real("phase", phase, owner=owner, what="[rad]")))
         shapes = {a.shape for a in (self.offset, self.amplitude, self.omega, self.phase)}
         if len(shapes) != 1:

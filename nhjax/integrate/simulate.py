@@ -584,7 +584,7 @@ def _save_times(saveat, t0, t1, runtime_errors=False):
             return jnp.linspace(t0, t1, int(saveat))
         # (to_device: an eager jnp operation would be one more program in a new process)
         return to_device(np.linspace(float(t0), float(t1), int(saveat)))
-    ts = jnp.asarray(saveat, dtype=float)
+    ts = to_device(saveat)
     if _is_traced(ts, t0, t1):
         if not runtime_errors:
             return ts
