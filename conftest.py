@@ -5,14 +5,17 @@ import os
 import tempfile
 
 # The tests check results, not speed, and most of their time is XLA compiling programs
-# that run once: LLVM's cheaper pipeline (no optimization passes) takes about a third
-# less CPU for the same programs. The arithmetic is the same up to the last bits (e.g.
-# where the optimized build fuses a multiply-add). Set before JAX starts its
-# backend (it reads XLA_FLAGS once); subprocesses and notebook kernels inherit it. An
-# optimization level already in XLA_FLAGS is kept.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-                               " --xla_llvm_disable_expensive_passes=true").strip()
+# that run once: LLVM's cheaper pipeline (no optimization passes) and XLA's older loop
+# emitters instead of its fusion emitters (what nhjax already compiles its eager solves
+# and quick programs with: _programs.SOLVE_OPTIONS, QUICK_OPTIONS) take much less CPU
+# for the same programs. The arithmetic is the same up to the last bits (e.g. where the
+# optimized build fuses a multiply-add). Set before JAX starts its backend (it reads
+# XLA_FLAGS once); subprocesses and notebook kernels inherit it. Settings already in
+# XLA_FLAGS are kept.
+_TEST_FLAGS = {"xla_backend_optimization_level": "0", "xla_llvm_disable_expensive_passes": "true",
+               "xla_cpu_use_fusion_emitters": "false"}
+_flags = os.environ.get("XLA_FLAGS", "")
+os.environ["XLA_FLAGS"] = " ".join([_flags] + [f"--{k}={v}" for k, v in _TEST_FLAGS.items() if k not in _flags]).strip()
 
 import jax
 import pytest
