@@ -208,6 +208,31 @@ def call():
     param = controls.Chebyshev(12, T, 2)
     guess = chain_loop_guess(chain, param, phi0, T, radius, orientation=orientation)
     return np.array(controls.solve_direct_newton(ocp, param, guess, progress=False).cost)""",
+    "OC: torque somersault, solve_direct then solve_pontryagin, Chebyshev(12)": """
+import controls
+from controls.tasks import torque_loop_guess, torque_somersault
+cat, th0, T = S.FallingCat.from_dimensions(1.0, 1.0, 0.25), 0.6, 2.0
+def call():
+    ocp = torque_somersault(cat, th0, -np.pi, T)
+    param = controls.Chebyshev(12, T, 2)
+    d = controls.solve_direct(ocp, param, torque_loop_guess(cat, param, th0, T), progress=False)
+    res = controls.pmp_residual(ocp, d.control)
+    p = controls.solve_pontryagin(ocp, res["ps"][-1], res["multipliers"], progress=False)
+    return np.array([d.cost, p.cost])""",
+    "OC: free-winding somersault (smooth coordinates), two starts and the polish": """
+from controls.tasks import somersault_free_winding
+from nhjax.scenes.falling_cat import FallingCatSmooth
+chart = S.FallingCatKinematic(); cat = FallingCatSmooth(chart.I1, chart.lam, chart.B)
+call = lambda: np.array(somersault_free_winding(cat, 0.6, -np.pi, 2.0, start_windings=(0, 1), progress=False).best.cost)""",
+    "OC: thruster chain steering, solve_direct_newton, Chebyshev(12)": """
+import jax.numpy as jnp, controls
+from controls.tasks import chain_steering
+chain, phi0, T = S.PlanarChain(thrusters=True), jnp.array([0.5, 0.5]), 3.0
+def call():  # from small inputs, as experiments/planar_chain.py (zero inputs are a degenerate start)
+    ocp = chain_steering(chain, (0.5, 0.3, 0.3), T, phi0)
+    param = controls.Chebyshev(12, T, chain.control_dim)
+    guess = 0.01 * np.random.default_rng(0).normal(size=param.size)
+    return np.array(controls.solve_direct_newton(ocp, param, guess, progress=False).cost)""",
 }
 
 CHILD = """

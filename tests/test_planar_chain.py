@@ -233,6 +233,31 @@ def test_reorientation_direct_and_pontryagin_agree():
     np.testing.assert_allclose(ind.trajectory.xs[-1, 0], turn, atol=1e-9)
 
 
+def test_thruster_steering_reaches_the_target_pose_at_rest():
+    """controls.tasks.chain_steering (thrusts and joint torques, rest to rest at a pose) by
+    the Newton direct method from small inputs: the answer's control, re-simulated apart
+    at 1e-12, ends at the target pose with the joints back and the momentum zero, and the
+    reported cost is int |u|^2 of that control by quadrature. (From exactly zero inputs the
+    chain stays at rest, the solve takes a few long steps and the constraints' Jacobian misses
+    the momenta's response: experiments/planar_chain.py starts from small inputs too.)"""
+    import controls
+    from controls.tasks import chain_steering
+
+    chain, phi0, T, target = PlanarChain(thrusters=True), jnp.array([0.5, 0.5]), 3.0, (0.5, 0.3, 0.3)
+    ocp = chain_steering(chain, target, T, phi0)
+    param = controls.Chebyshev(6, T, chain.control_dim)
+    guess = 0.01 * np.random.default_rng(0).normal(size=param.size)
+    d = controls.solve_direct_newton(ocp, param, guess, progress=False)
+    assert d.converged and d.violation < 1e-9, d.message
+    tr = nhjax.simulate(chain, ocp.x0, T, control=d.control, rtol=1e-12, atol=1e-12, saveat=2001)
+    goal = np.asarray(ocp.x0).copy()
+    goal[:3] = target
+    np.testing.assert_allclose(np.asarray(tr.xs[-1]), goal, rtol=0, atol=1e-8)
+    assert float(jnp.max(jnp.abs(tr.xs[:, 0]))) > 0.1  # it did travel
+    us = np.asarray(tr.us)
+    np.testing.assert_allclose(np.trapezoid((us**2).sum(1), np.asarray(tr.ts)), d.cost, rtol=1e-6)
+
+
 def test_reduction_helpers_name_bad_arguments(zero_momentum_chain, open_ellipse):
     """Issue 40: the geometry of a ReducedSystem with the wrong number of shape
     coordinates, a state of another system or NaN, and curvature_integral with an open
