@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import time
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -46,6 +47,7 @@ import numpy as np
 import nhjax
 
 from ._result import DirectResult
+from .parametrize import CubicSpline, PiecewiseConstant, PiecewiseLinear, _knots
 from .problem import (
     OCP,
     ProblemError,
@@ -81,11 +83,29 @@ class _Shooting(eqx.Module):
     def values(self, z, tangents=False):
         """(J, psi) at z. Differentiated by the discrete adjoint: its VJP sweep (one
         reverse pass per cotangent), or with ``tangents`` its forward sensitivities (the
-        solve carries dx/dz along: one pass gives the whole Jacobian)."""
+        solve carries dx/dz along: one pass gives the whole Jacobian).
+
+        The steps resolve the inputs (``_step_controller``): the step control sees the
+        states, not their derivatives in z, so where the states hardly move (a system at
+        rest under zero inputs, the usual first guess) it would take a few long steps, and
+        the derivatives of the inputs' effect, which the solver needs, would be those of a
+        coarse quadrature of the inputs (on the thruster chain at rest the final momenta's
+        response came out 0 instead of 0.54 per unit step)."""
         adjoint = nhjax.DiscreteAdjoint(jacobians="auto", max_tangents=z.shape[0] if tangents else 0)
         _, J, psi = rollout(self.ocp, self.param.signal(z), rtol=self.rtol, atol=self.atol,
-                            max_steps=self.max_steps, adjoint=adjoint)
+                            max_steps=self.max_steps, adjoint=adjoint,
+                            stepsize_controller=_step_controller(self.param, self.rtol, self.atol))
         return jnp.concatenate([J[None], psi])
+
+
+def _step_controller(param, rtol, atol):
+    """The step-size control of a shooting solve over ``param``: the inputs of a
+    piecewise parametrization change smoothly between its knots, so the steps stop at
+    them (diffrax's ``jump_ts``); a smooth one (Chebyshev, Fourier) gets steps of at most
+    its horizon over its number of parameters per input (one step per degree of freedom)."""
+    if isinstance(param, (PiecewiseConstant, PiecewiseLinear, CubicSpline)):
+        return diffrax.PIDController(rtol=rtol, atol=atol, jump_ts=_knots(param)[1:-1])
+    return diffrax.PIDController(rtol=rtol, atol=atol, dtmax=param.T / max(param.size // max(param.dim, 1), 1))
 
 
 @compiled

@@ -235,20 +235,22 @@ def test_reorientation_direct_and_pontryagin_agree():
 
 def test_thruster_steering_reaches_the_target_pose_at_rest():
     """controls.tasks.chain_steering (thrusts and joint torques, rest to rest at a pose) by
-    the Newton direct method from small inputs: the answer's control, re-simulated apart
-    at 1e-12, ends at the target pose with the joints back and the momentum zero, and the
-    reported cost is int |u|^2 of that control by quadrature. (From exactly zero inputs the
-    chain stays at rest, the solve takes a few long steps and the constraints' Jacobian misses
-    the momenta's response: experiments/planar_chain.py starts from small inputs too.)"""
+    both direct methods from zero inputs (where the chain stays at rest: the shooting
+    solves' step cap keeps their Jacobian that of the inputs, see controls.newton._step_cap):
+    the answer's control, re-simulated apart at 1e-12, ends at the target pose with the
+    joints back and the momentum zero; the reported cost is int |u|^2 of that control by
+    quadrature; SQP and feasible-path Newton reach the same optimum."""
     import controls
     from controls.tasks import chain_steering
 
     chain, phi0, T, target = PlanarChain(thrusters=True), jnp.array([0.5, 0.5]), 3.0, (0.5, 0.3, 0.3)
     ocp = chain_steering(chain, target, T, phi0)
     param = controls.Chebyshev(6, T, chain.control_dim)
-    guess = 0.01 * np.random.default_rng(0).normal(size=param.size)
-    d = controls.solve_direct_newton(ocp, param, guess, progress=False)
+    d = controls.solve_direct_newton(ocp, param, jnp.zeros(param.size), progress=False)
     assert d.converged and d.violation < 1e-9, d.message
+    q = controls.solve_direct(ocp, param, jnp.zeros(param.size), progress=False)
+    assert q.converged and q.violation < 1e-8, q.message
+    np.testing.assert_allclose(q.cost, d.cost, rtol=1e-7)
     tr = nhjax.simulate(chain, ocp.x0, T, control=d.control, rtol=1e-12, atol=1e-12, saveat=2001)
     goal = np.asarray(ocp.x0).copy()
     goal[:3] = target
