@@ -268,7 +268,29 @@ def box_qp(H, g, A, b, lo, hi, *, max_iter=50, tol=1e-11):
     y0 = jnp.zeros(me)
     d, y, zl, zu, k, err = jax.lax.while_loop(cond, body, (d0, y0, zl0, zu0, 0, error(d0, y0, zl0, zu0)))
     ok = (err <= tol) & jnp.all(jnp.isfinite(d))
-    return d, y, ok, k
+
+    # polish: the interior point stays off an active bound by ~mu / z; one KKT solve with
+    # the bounds whose multiplier exceeds their slack held exactly puts it on the bound
+    # (kept when it is feasible and its bound multipliers have the right signs); without
+    # the IPM's regularization of the KKT matrix, whose -reg y would be left in A d = b
+    sl, su, *_ = parts(d, y, zl, zu)
+    act_l, act_u = L & (zl > sl), U & (zu > su) & ~(L & (zl > sl))
+    fixed = act_l | act_u
+    bound = jnp.where(act_l, jnp.where(L, lo, 0.0), jnp.where(act_u, jnp.where(U, hi, 0.0), 0.0))
+    Hf = jnp.where(fixed[:, None], jnp.eye(n), H)
+    Af = jnp.where(fixed[:, None], 0.0, -A.T)
+    K = jnp.block([[Hf, Af], [A, jnp.zeros((me, me))]])
+    sol = jnp.linalg.solve(K, jnp.concatenate([jnp.where(fixed, bound, -g), b]))
+    dp, yp = sol[:n], sol[n:]
+    z = H @ dp + g - A.T @ yp  # z_lo - z_hi on the fixed components, 0 on the free ones
+    good = (jnp.all(jnp.isfinite(sol))
+            & jnp.all(jnp.where(L & ~fixed, dp >= lo - 1e-14 * (1 + jnp.abs(lo)), True))
+            & jnp.all(jnp.where(U & ~fixed, dp <= hi + 1e-14 * (1 + jnp.abs(hi)), True))
+            & jnp.all(jnp.where(act_l, z >= -tol * gscale, True)) & jnp.all(jnp.where(act_u, z <= tol * gscale, True)))
+    if me:
+        good = good & (jnp.max(jnp.abs(A @ dp - b)) <= tol * bscale)
+    use = ok & good
+    return jnp.where(use, dp, d), jnp.where(use, yp, y), ok, k
 
 
 # ------------------------------------------------------------------ the controller
@@ -320,7 +342,7 @@ class MPC(eqx.Module):
     regularization: jax.Array
 
     def __init__(self, ocp, period, intervals, *, mode="rti", horizon="receding", substeps=1, terminal=None,
-                 terminal_weight=1e4, hessian="gauss-newton", max_iter=50, tol=1e-9, qp_iter=60, qp_tol=1e-10,
+                 terminal_weight=1e4, hessian="gauss-newton", max_iter=50, tol=1e-9, qp_iter=60, qp_tol=1e-12,
                  regularization=1e-9):
         owner = "MPC"
         if not isinstance(ocp, OCP):
@@ -720,8 +742,12 @@ def _checked_matrix(name, value, shape, owner):
     return a
 
 
-def _plant_checks(mpc, plant, owner):
+def _plant_checks(mpc, plant, owner, batched=False):
+    """The plant against the model (``batched``: its arrays carry a leading member axis;
+    member 0 is checked)."""
     model = mpc.ocp.system
+    if batched and isinstance(plant, AbstractSystem):
+        plant = jtu.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plant)
     if not isinstance(plant, AbstractSystem):
         raise MPCError(f"{owner}: plant must be an nhjax system (a scene, a Lagrangian, ...), got "
                        f"{type(plant).__name__}")
@@ -898,10 +924,10 @@ def _result(mpc, plant, t0, xs, ys, us, status, J, drift, periods):
     return ClosedLoop(trajectory=traj, inputs=us, measurements=ys, status=MPCStatus(*status), cost=J)
 
 
-def _setup(mpc, plant, periods, plant_substeps, owner):
+def _setup(mpc, plant, periods, plant_substeps, owner, batched=False):
     if not isinstance(mpc, MPC):
         raise MPCError(f"{owner}: mpc must be a controls.MPC, got {type(mpc).__name__}")
-    _plant_checks(mpc, plant, owner)
+    _plant_checks(mpc, plant, owner, batched)
     with as_problem_error():
         periods = V.integer("periods", periods, minimum=1, owner=owner)
         plant_substeps = V.integer("plant_substeps", mpc.substeps if plant_substeps is None else plant_substeps,
@@ -1010,7 +1036,14 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     members converged or fell back. For more members than one process holds, split
     ``x0s`` and map the chunks over a Dask client."""
     owner = "closed_loop_batch"
-    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner)
+    in_axes = dict(in_axes or {})
+    unknown = set(in_axes) - {"plant"}
+    if unknown:
+        raise MPCError(f"{owner}: in_axes keys must be among ('plant',), got {sorted(unknown)}")
+    plant_axis = in_axes.get("plant")
+    if plant_axis not in (None, 0):
+        raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
+    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
     X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
     if X.ndim != 2 or X.shape[1] != n:
@@ -1019,13 +1052,6 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
         raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
     B = X.shape[0]
-    in_axes = dict(in_axes or {})
-    unknown = set(in_axes) - {"plant"}
-    if unknown:
-        raise MPCError(f"{owner}: in_axes keys must be among ('plant',), got {sorted(unknown)}")
-    plant_axis = in_axes.get("plant")
-    if plant_axis not in (None, 0):
-        raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
     if keys is None:
         if np.any(fsd > 0) or np.any(msd > 0):
