@@ -208,6 +208,14 @@ def call():
     param = controls.Chebyshev(12, T, 2)
     guess = chain_loop_guess(chain, param, phi0, T, radius, orientation=orientation)
     return np.array(controls.solve_direct_newton(ocp, param, guess, progress=False).cost)""",
+    # closed-loop MPC (issue 42; the per-period figures and the CasADi peer are in nhjax run mpc_sphere)
+    "OC: sphere MPC closed loop, RTI, 1 s / 20 intervals, 20 periods": """
+import controls
+from controls.tasks import sphere_tracking
+def call():
+    ocp = sphere_tracking(S.ShellWithTop())
+    mpc = controls.MPC(ocp, 0.05, 20, mode="rti")
+    return controls.closed_loop(mpc, ocp.system, ocp.x0, 20).inputs""",
 }
 
 CHILD = """
