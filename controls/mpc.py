@@ -559,10 +559,13 @@ class MPC(eqx.Module):
         def trial(a):
             return self._merit(y, u + a * du_k, ts, hs, mu)
 
+        # a small step whose predicted decrease is at the level of rounding in the merit is
+        # taken whole (no decrease can be seen; refusing it would stall a converged iteration)
+        tiny = (-slope <= 1e-13 * (1 + jnp.abs(phi0))) & (jnp.max(jnp.abs(du)) <= 1e-6 * (1 + jnp.max(jnp.abs(u))))
         if line_search:
             def ls_cond(carry):
                 a, (ph, *_), k = carry
-                return ~(ph <= phi0 + 1e-4 * a * jnp.minimum(slope, 0.0)) & (k < 30)
+                return ~(ph <= phi0 + 1e-4 * a * jnp.minimum(slope, 0.0)) & (k < 30) & ~tiny
 
             def ls_body(carry):
                 a, _, k = carry
@@ -570,7 +573,7 @@ class MPC(eqx.Module):
 
             one = jnp.asarray(1.0)
             a, (ph, s1, cost1, viol1), _ = jax.lax.while_loop(ls_cond, ls_body, (one, trial(one), 0))
-            accepted = ph <= phi0 + 1e-4 * a * jnp.minimum(slope, 0.0)
+            accepted = (ph <= phi0 + 1e-4 * a * jnp.minimum(slope, 0.0)) | (tiny & jnp.isfinite(ph))
         else:
             a = 1.0
             ph, s1, cost1, viol1 = trial(1.0)
