@@ -6,11 +6,13 @@ cat at zero angular momentum, x = (theta, chi, psi, theta', chi'), nominally fro
 bent by theta0 = 0.6 rad to x(T) = (0.6, 2 pi, -pi, 0, 0) at T = 2 s (chi winds once,
 psi turns by -pi), least int |u|^2 dt.
 
-Controller: ``controls.MPC(ocp, period=0.1, intervals=20, mode="rti",
-horizon="shrinking", terminal="penalty", terminal_weight=1e6)``: the landing time is
-fixed, so the horizon shrinks to it; the terminal conditions are a penalty
-1e6 |x(T) - target|^2 (a hard constraint of 5 equations is unreachable with the 2
-inputs of the last interval). The first plan of every member is the nominal
+Controller: ``controls.MPC(ocp, period=0.05, intervals=40, mode="rti",
+horizon="shrinking", terminal="penalty", terminal_weight=1e6, hessian="exact")``: the
+landing time is fixed, so the horizon shrinks to it; the terminal conditions are a
+penalty 1e6 |S (x(T) - target)|^2, S = diag(1, 1, 10, 1, 1) (the turn weighted above the
+shape; a hard constraint of 5 equations is unreachable with the 2 inputs of the last
+interval), torques |u_i| <= 1 N m (``--bound``: without a bound the last intervals of
+the shrinking horizon spend large torques on the final state). The first plan of every member is the nominal
 open-loop optimum of the same discretization (converged horizon solves, continued in
 the penalty's weight 1e2, 1e4, 1e6 from the fixed-theta loop's torques).
 
@@ -27,7 +29,7 @@ Success: the plant's final psi within 1 degree of -pi. Writes ``DIR/mpc_cat.json
 load average) and ``DIR/mpc_cat.png`` (histograms of the final attitude error, the
 effort and the final shape error).
 
-Usage: nhjax run mpc_cat [--out DIR] [--members 256] [--sequential 32]
+Usage: nhjax run mpc_cat [--out DIR] [--members 256] [--sequential 32] [--bound 1] [--mode rti]
 """
 
 import argparse
@@ -47,10 +49,12 @@ from controls.tasks import torque_somersault
 from nhjax.scenes import FallingCat
 
 TH0, T, TURN = 0.6, 2.0, -np.pi
-PERIOD, INTERVALS = 0.1, 20
+PERIOD, INTERVALS = 0.05, 40  # [s]; the horizon T on INTERVALS intervals, one per period
 SUCCESS_DEG = 1.0
 WEIGHT = 1e6  # the terminal penalty w |x(T) - target|^2
 HESSIAN = "exact"
+MODE = "rti"  # (--mode)
+BOUND = 1.0  # |u_i| <= BOUND [N m] (--bound)
 SCALE = (1.0, 1.0, 10.0, 1.0, 1.0)  # of (theta, chi, psi, theta', chi') - target in the penalty
 
 
@@ -65,12 +69,15 @@ class LandingTarget(eqx.Module):
         return self.scale * (x - self.target)
 
 
-def setup():
+def setup(bound=None, mode=None):
+    bound = BOUND if bound is None else bound
+    mode = MODE if mode is None else mode
     cat = FallingCat()
     nominal = torque_somersault(cat, TH0, TURN, T)
     ocp = controls.OCP(cat, nominal.x0, T, nominal.running_cost,
-                       terminal_constraints=LandingTarget(nominal.terminal_constraints.target, jnp.asarray(SCALE)))
-    mpc = controls.MPC(ocp, PERIOD, INTERVALS, mode="rti", horizon="shrinking", terminal="penalty",
+                       terminal_constraints=LandingTarget(nominal.terminal_constraints.target, jnp.asarray(SCALE)),
+                       u_lower=-bound, u_upper=bound)
+    mpc = controls.MPC(ocp, PERIOD, INTERVALS, mode=mode, horizon="shrinking", terminal="penalty",
                        terminal_weight=WEIGHT, hessian=HESSIAN)
     return cat, ocp, mpc
 
@@ -134,18 +141,22 @@ def main():
     ap.add_argument("--out", default="mpc_cat", help="folder for the outputs (default: ./mpc_cat)")
     ap.add_argument("--members", type=int, default=256, help="closed loops in the batch")
     ap.add_argument("--sequential", type=int, default=32, help="members also run one by one (timed, scaled)")
+    ap.add_argument("--bound", type=float, default=BOUND, help="torque bound |u_i| [N m] (default 1)")
+    ap.add_argument("--mode", choices=("rti", "converged"), default=MODE, help="MPC mode (default rti)")
     a = ap.parse_args()
     if a.members < 1 or not 1 <= a.sequential <= a.members:
         ap.error("--members >= 1 and 1 <= --sequential <= --members")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     load_start = os.getloadavg()
-    cat, ocp, mpc = setup()
+    if not a.bound > 0:
+        ap.error("--bound must be positive")
+    cat, ocp, mpc = setup(a.bound, a.mode)
     u0, st = nominal_plan(ocp)
     print(f"nominal plan: converged {bool(st.converged)} in {int(st.iterations)} iterations, cost {float(st.cost):.6g}")
     X, scales = members(a.members)
     cats, stacked = plants(cat, scales)
-    periods = INTERVALS * 1  # period = interval: the whole shrinking horizon
+    periods = INTERVALS  # period = interval: the whole shrinking horizon
     tic = time.perf_counter()
     batch = controls.closed_loop_batch(mpc, stacked, X, periods, in_axes={"plant": 0}, u_guess=u0)
     jax.block_until_ready(batch.inputs)
@@ -170,7 +181,8 @@ def main():
     shape_err = np.abs(xT[:, :2] - [TH0, 2 * np.pi]).max(1)
     effort = np.asarray(batch.cost)
     info = dict(command="nhjax run mpc_cat " + " ".join(sys.argv[1:]), members=a.members, periods=periods,
-                period_s=PERIOD, T=T, theta0=TH0, turn=TURN, mode="rti", horizon="shrinking",
+                period_s=PERIOD, intervals=INTERVALS, T=T, theta0=TH0, turn=TURN, mode=a.mode, horizon="shrinking",
+                torque_bound=a.bound, hessian=HESSIAN, psi_scale=SCALE[2],
                 terminal=f"penalty {WEIGHT:g}", success_threshold_deg=SUCCESS_DEG,
                 success_rate=float(ok.mean()),
                 final_attitude_error_deg_max=float(err_deg[ok].max()) if ok.any() else None,
