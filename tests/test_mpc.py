@@ -96,7 +96,10 @@ _solve = eqx.filter_jit(lambda mpc, plan, y: mpc.solve(plan, y, 0.0))
     pytest.param("terminal cost", marks=pytest.mark.slow(reason="two more compiled programs; the default-run "
                                                               "sibling 'terminal constraint, bounds active' checks "
                                                               "the same loop against a stricter KKT test")),
-    "terminal constraint, bounds active"])
+    "terminal constraint, bounds active",
+    pytest.param("terminal penalty, exact Hessian", marks=pytest.mark.slow(
+        reason="two more compiled programs; the default-run sibling 'terminal constraint, bounds active' checks "
+               "the same loop (the penalty's optimum is checked as the terminal cost's)"))])
 def test_shrinking_loop_reproduces_the_open_loop_optimum(kind):
     """Model = plant, no disturbance, shrinking horizon, converged solves: the closed
     loop's inputs and states are the open-loop optimum's to 1e-6 (Bellman's principle
@@ -105,17 +108,27 @@ def test_shrinking_loop_reproduces_the_open_loop_optimum(kind):
     least-squares multipliers vanishes on the inputs off their bounds, points outward
     on those at a bound, and psi = 0."""
     bound = 0.2  # the unconstrained optimum reaches |u| = 0.26
-    ocp = _terminal_cost_ocp() if kind == "terminal cost" else _constrained_ocp(bound)
-    mpc = MPC(ocp, PERIOD, N, mode="converged", horizon="shrinking", substeps=2, tol=1e-10)
+    extra = {}
+    if kind == "terminal cost":
+        ocp = _terminal_cost_ocp()
+    elif kind.startswith("terminal penalty"):
+        ocp = controls.OCP(CAT, X0, T, Effort(), terminal_constraints=ShapeAt(TARGET[:2]))
+        extra = dict(terminal="penalty", terminal_weight=100.0, hessian="exact")
+    else:
+        ocp = _constrained_ocp(bound)
+    mpc = MPC(ocp, PERIOD, N, mode="converged", horizon="shrinking", substeps=2, tol=1e-10, **extra)
     plan, status = _solve(mpc, mpc.init(), X0)
     assert bool(status.converged) and not bool(status.fallback)
     u = np.asarray(plan.u)
 
     run = _single_shooting(mpc)
+    if kind.startswith("terminal penalty"):  # J + w |psi|^2, no constraints left
+        plain = run
+        run = lambda v: (plain(v)[0] + 100.0 * jnp.sum(plain(v)[1] ** 2), jnp.zeros(0))  # noqa: E731
     J, psi = jax.jit(run)(jnp.asarray(u))
     g = np.asarray(jax.grad(lambda v: run(v)[0])(jnp.asarray(u))).ravel()
     assert abs(float(J) - float(status.cost)) < 1e-12 * max(1.0, abs(float(J)))
-    if kind == "terminal cost":
+    if kind != "terminal constraint, bounds active":
         assert np.abs(g).max() < 1e-8 * max(1.0, float(J))
     else:
         assert np.abs(np.asarray(psi)).max() < 1e-9
@@ -132,7 +145,25 @@ def test_shrinking_loop_reproduces_the_open_loop_optimum(kind):
     assert not np.asarray(loop.status.fallback).any() and np.asarray(loop.status.converged).all()
     np.testing.assert_allclose(np.asarray(loop.inputs), u, rtol=0, atol=1e-6)
     np.testing.assert_allclose(np.asarray(loop.trajectory.xs), np.asarray(plan.s), rtol=0, atol=1e-6)
-    assert abs(float(loop.cost) + float(ocp.terminal(loop.trajectory.xs[-1])[0]) - float(J)) < 1e-6
+    # the plant's running cost plus the terminal part at the plant's final state
+    phi, psi_end = ocp.terminal(loop.trajectory.xs[-1])
+    final = float(phi) + (100.0 * float(jnp.sum(psi_end**2)) if kind.startswith("terminal penalty") else 0.0)
+    assert abs(float(loop.cost) + final - float(J)) < 1e-6
+
+
+@pytest.mark.slow(reason="compiles the per-period step and plant programs; the default-run sibling "
+                         "test_push_is_rejected_by_the_real_time_iteration runs the same loop as one scan")
+def test_timed_loop_is_the_scanned_loop():
+    """closed_loop(timing=True) steps the same per-period functions from Python: the
+    same inputs and states as the scanned loop, and a positive solve time per period."""
+    mpc, plant = _regulator(1.1)
+    kick = [(0.5, np.array([0.0, 0.0, 0.0, 1.5, 1.0]))]
+    scanned = closed_loop(mpc, plant, X0, PERIODS, pushes=kick)
+    timed = closed_loop(mpc, plant, X0, PERIODS, pushes=kick, timing=True)
+    np.testing.assert_allclose(np.asarray(timed.inputs), np.asarray(scanned.inputs), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(timed.trajectory.xs), np.asarray(scanned.trajectory.xs), rtol=0,
+                               atol=1e-10)
+    assert np.all(np.asarray(timed.status.solve_ms) > 0) and np.isnan(np.asarray(scanned.status.solve_ms)).all()
 
 
 def _regulator(I1_scale=1.0):
