@@ -15,9 +15,10 @@ state, so J_k is RK4's quadrature of int L dt over the interval). The first
 ``period / h`` inputs of the plan are applied; the next period starts from the
 plan shifted by that many intervals (the tail extended by the last input).
 
-Direct multiple shooting (Bock & Plitt 1984): the states s_k are unknowns beside
-the inputs. One SQP iteration linearizes the N interval maps at once (``jax.jacfwd``
-of the RK4 map, ``vmap`` over intervals: no Python loop over intervals),
+Linearized as direct multiple shooting (Bock & Plitt 1984), with the states s_k
+steps beside the inputs'. One SQP iteration linearizes the N interval maps at once
+(``jax.jacfwd`` of the RK4 map, ``vmap`` over intervals: no Python loop over
+intervals),
 
     ds_0 = y - s_0,   ds_{k+1} = A_k ds_k + B_k du_k + c_k,   c_k = F_k - s_{k+1},
 
@@ -37,12 +38,23 @@ lambda_k = dJ_k/ds + A_k^T lambda_{k+1}), each block's eigenvalues floored at
 iteration is the KKT point of the discrete problem whatever the Hessian model:
 the model changes the rate, not the answer.
 
+Every iterate is feasible for the shooting equations: the plan's inputs are rolled
+out from the measurement before the first step, and after each step the states are
+the rollout of the new inputs (the step's state part is replaced by the
+simulation), so c_k = 0 and ds_0 = 0 at each linearization. The Jacobians and the
+QP are those of multiple shooting, the globalization that of single shooting: an
+l1 merit over multiple-shooting defects stalled the spherical robot's tracking
+problem, whose full steps were good ones in single-shooting terms. A QP step is
+finished by one equality-constrained KKT solve on the interior point's active set
+(``box_qp``), so that converged iterates sit exactly on their active bounds.
+
 Modes:
 
 * ``mode="converged"``: SQP iterations with a backtracking line search on the
-  l1 merit J + mu (|defects|_1 + |psi|_1) (N&W Algorithm 18.3) until the step
-  is below ``tol`` (relative) and the defects and terminal constraints below
-  ``tol``, at most ``max_iter`` iterations;
+  l1 merit J + mu |psi|_1 of the rolled-out inputs (N&W Algorithm 18.3, mu 1.5 times
+  the largest terminal multiplier) until the input step is below ``tol``
+  (relative) and the terminal constraints below ``tol``, at most ``max_iter``
+  iterations;
 * ``mode="rti"``: the real-time iteration (Diehl, Bock & Schlöder 2005): one full
   SQP step per period from the shifted plan. Bounded work: one linearization,
   one condensing, one QP of at most ``qp_iter`` interior-point iterations.
@@ -59,8 +71,8 @@ task that ends at a given time (a landing); then, without disturbances and with
 the plant equal to the model, the closed loop reproduces the open-loop optimum
 (Bellman's principle of optimality for the discrete problem).
 
-Statuses (``MPCStatus``) per period: converged, iterations, the largest defect
-or terminal-constraint residual after the step (``violation``), the QP's own
+Statuses (``MPCStatus``) per period: converged, iterations, the largest
+terminal-constraint residual after the step (``violation``), the QP's own
 success, the horizon cost, and ``fallback``. A horizon solve *fails* when its
 numbers are not finite, its QP does not reach ``qp_tol`` (e.g. a terminal
 constraint that the input bounds make unreachable), the line search finds no
@@ -138,8 +150,9 @@ class MPCStatus(eqx.Module):
 
     converged : the iteration met ``tol`` (in ``"rti"`` mode: the single step did).
     iterations : SQP iterations taken.
-    violation : max |defect| and |psi| of the plan after the step (before the
-        fallback) [state units].
+    violation : max |psi| (hard terminal constraints) of the plan after the step,
+        before the fallback (0 without hard constraints; the shooting equations hold
+        by construction).
     qp_ok : every QP reached ``qp_tol``.
     cost : the horizon cost of the plan kept (the model's prediction).
     fallback : the solve failed and the previous plan's next segment was applied.
@@ -196,7 +209,11 @@ def box_qp(H, g, A, b, lo, hi, *, max_iter=50, tol=1e-11):
     definite; lo, hi may hold -inf / inf; lo < hi) by a primal-dual interior-point
     iteration with Mehrotra's predictor-corrector (N&W Algorithm 16.4), traceable
     (a ``lax.while_loop`` of at most ``max_iter`` iterations, each one LU factorization
-    of the (n + m_eq) KKT matrix and two solves).
+    of the (n + m_eq) KKT matrix and two solves). The interior point stays off an
+    active bound by about mu / z; a last KKT solve with the bounds whose multiplier
+    exceeds their slack held exactly (and A d = b without the iteration's
+    regularization) replaces it when that point is feasible and its bound multipliers
+    have the right signs. A must have full row rank.
 
     Returns (d, y, ok, iterations): the step, the multipliers of A d = b (H d + g -
     A^T y - z_lo + z_hi = 0 with the bound multipliers z >= 0), and whether the scaled
