@@ -228,11 +228,18 @@ call = lambda: np.array(somersault_free_winding(cat, 0.6, -np.pi, 2.0, start_win
 import jax.numpy as jnp, controls
 from controls.tasks import chain_steering
 chain, phi0, T = S.PlanarChain(thrusters=True), jnp.array([0.5, 0.5]), 3.0
-def call():  # from small inputs, as experiments/planar_chain.py (zero inputs are a degenerate start)
+def call():
     ocp = chain_steering(chain, (0.5, 0.3, 0.3), T, phi0)
     param = controls.Chebyshev(12, T, chain.control_dim)
-    guess = 0.01 * np.random.default_rng(0).normal(size=param.size)
-    return np.array(controls.solve_direct_newton(ocp, param, guess, progress=False).cost)""",
+    return np.array(controls.solve_direct_newton(ocp, param, jnp.zeros(param.size), progress=False).cost)""",
+    # closed-loop MPC (issue 42; the per-period figures and the CasADi peer are in nhjax run mpc_sphere)
+    "OC: sphere MPC closed loop, RTI, 1 s / 20 intervals, 20 periods": """
+import controls
+from controls.tasks import sphere_tracking
+def call():
+    ocp = sphere_tracking(S.ShellWithTop())
+    mpc = controls.MPC(ocp, 0.05, 20, mode="rti")
+    return controls.closed_loop(mpc, ocp.system, ocp.x0, 20).inputs""",
 }
 
 CHILD = """

@@ -5,10 +5,12 @@ default of solve_direct: damped-BFGS Hessians, exact constraint Jacobians,
 control bounds in its QP), a feasible-path Newton direct solver for small
 strongly-curved problems, with a residual check of the
 optimality conditions that applies to any solution, and grids of problems of one
-structure solved in one program (``solve_pontryagin_batch``)."""
+structure solved in one program (``solve_pontryagin_batch``), and closed-loop
+model-predictive control (``MPC``, ``closed_loop``, ``closed_loop_batch``)."""
 
 from .batch import BatchResult, GridError, solve_pontryagin_batch
 from .direct import DirectResult, solve_direct
+from .mpc import MPC, ClosedLoop, MPCError, MPCStatus, Plan, box_qp, closed_loop, closed_loop_batch
 from .newton import solve_direct_newton
 from .parametrize import Chebyshev, CubicSpline, Fourier, PiecewiseConstant, PiecewiseLinear
 from .sqp import prepare_direct_sqp, solve_direct_sqp
@@ -26,16 +28,24 @@ from .problem import OCP, ProblemError, rollout
 __all__ = [
     "BatchResult",
     "Chebyshev",
+    "ClosedLoop",
     "CubicSpline",
     "DirectResult",
     "Fourier",
     "GridError",
     "HamiltonianSystem",
     "IndirectResult",
+    "MPC",
+    "MPCError",
+    "MPCStatus",
     "OCP",
     "PiecewiseConstant",
     "PiecewiseLinear",
+    "Plan",
     "ProblemError",
+    "box_qp",
+    "closed_loop",
+    "closed_loop_batch",
     "continuation",
     "pmp_residual",
     "prepare_direct_sqp",

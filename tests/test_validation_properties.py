@@ -278,6 +278,11 @@ PROBES = {
     "controls.prepare_pmp_residual": lambda: controls.prepare_pmp_residual(_ocp(), "not a control"),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
     "controls.solve_pontryagin_batch": lambda: controls.solve_pontryagin_batch([_ocp(), _ocp()], rtol=-1.0),
+    "controls.MPC": lambda: controls.MPC(_ocp(), -0.1, 10),
+    "controls.closed_loop": lambda: controls.closed_loop(controls.MPC(_ocp(), 0.1, 10), _ocp().system,
+                                                         jnp.array([np.nan, 0.0]), 3),
+    "controls.closed_loop_batch": lambda: controls.closed_loop_batch(controls.MPC(_ocp(), 0.1, 10), _ocp().system,
+                                                                     jnp.zeros((2, 3)), 3),
     "nhjax.simulate_batch": lambda: nhjax.simulate_batch(OSC, jnp.ones((4, 3)), 1.0),
     "nhjax.PiecewiseConstant": lambda: nhjax.PiecewiseConstant([0.0, 1.0], [[1.0], [2.0]]),
     "nhjax.PiecewiseLinear": lambda: nhjax.PiecewiseLinear([0.0, 1.0], [[np.nan], [1.0]]),
@@ -322,6 +327,10 @@ EXEMPT = {
     "controls.DirectResult": "result container", "controls.IndirectResult": "result container",
     "controls.BatchResult": "result container returned by solve_pontryagin_batch",
     "controls.HamiltonianSystem": "built by solve_pontryagin from a checked OCP",
+    "controls.ClosedLoop": "result container returned by closed_loop",
+    "controls.MPCStatus": "result container (per-period statuses of an MPC)",
+    "controls.Plan": "the controller's memory, built by MPC.init from checked input",
+    "controls.box_qp": "pure function of arrays (runs traced inside the MPC's solve)",
 }
 # Public names checked with plain ValueError: none left (the signals use the layer too).
 PLAIN_VALUEERROR = {}

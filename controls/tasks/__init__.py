@@ -1,5 +1,6 @@
-"""Ready-made optimal-control tasks: the falling cat's somersault, the spherical robot's steering,
-and the planar chain's reorientation and thruster steering."""
+"""Ready-made optimal-control tasks: the falling cat's somersault, the spherical robot's steering
+and figure-eight tracking (for ``controls.MPC``), and the planar chain's reorientation and
+thruster steering."""
 
 from .planar_chain import (
     chain_reorientation,
@@ -33,8 +34,13 @@ from .steering import (
     sphere_steering_reduced,
     top_heading,
 )
+from .tracking import FigureEight, TrackingCost, shell_push, sphere_tracking
 
 __all__ = [
+    "FigureEight",
+    "TrackingCost",
+    "shell_push",
+    "sphere_tracking",
     "FreeWindingResult",
     "chain_loop_guess",
     "chain_loop_path",

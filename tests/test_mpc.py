@@ -1,0 +1,294 @@
+"""Closed-loop model-predictive control (controls.MPC, closed_loop, closed_loop_batch).
+
+On the torque-driven falling cat (5 states, 2 torques; small horizons): the
+shrinking-horizon loop with the plant equal to the model reproduces the open-loop
+optimum, which is checked against the optimality conditions of the discrete problem
+computed here independently (single shooting, jax.grad); a push is rejected by the
+real-time iteration with a model error; an unreachable terminal constraint is
+reported period by period and the fallback applies the previous plan; bad input is
+refused with MPCError before any numerics; a batch member is the same loop run alone.
+The interior-point QP is checked against its own optimality conditions.
+"""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import controls
+from controls import MPC, MPCError, ProblemError, box_qp, closed_loop, closed_loop_batch
+from controls.tasks.somersault import Effort
+from nhjax.scenes import FallingCat, FallingCatKinematic, ShellWithTop
+
+PERIOD, N, T = 0.1, 10, 1.0
+PERIODS = 25  # the regulator's loops (push and batch tests share one compiled loop)
+
+
+class Quadratic(eqx.Module):
+    """w . (x - target)^2 (terminal cost) or, called with (t, x, u), the running cost
+    w . (x - target)^2 + r |u|^2."""
+
+    target: jax.Array
+    w: jax.Array
+    r: jax.Array = eqx.field(default_factory=lambda: jnp.asarray(1.0))
+
+    def __call__(self, *args):
+        if len(args) == 1:
+            return jnp.sum(self.w * (args[0] - self.target) ** 2)
+        _, x, u = args
+        return jnp.sum(self.w * (x - self.target) ** 2) + self.r * (u @ u)
+
+
+class ShapeAt(eqx.Module):
+    """Terminal constraints: the shape (theta, chi) at a target and the cat at rest."""
+
+    target: jax.Array
+
+    def __call__(self, x):
+        return jnp.concatenate([x[:2] - self.target, x[3:]])
+
+
+CAT = FallingCat()
+X0 = CAT.initial_state(0.8)
+TARGET = jnp.array([0.9, 0.3, 0.0, 0.0, 0.0])
+
+
+def _terminal_cost_ocp():
+    return controls.OCP(CAT, X0, T, Effort(), terminal_cost=Quadratic(TARGET, jnp.array([100.0, 100, 0, 10, 10])))
+
+
+def _constrained_ocp(bound):
+    return controls.OCP(CAT, X0, T, Effort(), terminal_constraints=ShapeAt(TARGET[:2]), u_lower=-bound,
+                        u_upper=bound)
+
+
+def _single_shooting(mpc):
+    """(J(u), psi(u)) of the discrete horizon problem from X0 at t = 0, written here
+    from the model's vector field (classical RK4, ``mpc.substeps`` steps per interval)."""
+    ocp, h, k = mpc.ocp, float(mpc.h), mpc.substeps
+    dt = h / k
+
+    def f(t, y, u):
+        return jnp.concatenate([ocp.system.vector_field(t, y[:-1], u), ocp.running_cost(t, y[:-1], u)[None]])
+
+    def rk4(y, tu):
+        t, u = tu
+        k1 = f(t, y, u)
+        k2 = f(t + dt / 2, y + dt / 2 * k1, u)
+        k3 = f(t + dt / 2, y + dt / 2 * k2, u)
+        k4 = f(t + dt, y + dt * k3, u)
+        return y + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4), None
+
+    def run(u):
+        ts = jnp.arange(mpc.intervals * k) * dt  # the steps' start times
+        y, _ = jax.lax.scan(rk4, jnp.concatenate([X0, jnp.zeros(1)]), (ts, jnp.repeat(u, k, axis=0)))
+        phi, psi = ocp.terminal(y[:-1])
+        return phi + y[-1], psi
+
+    return run
+
+
+_solve = eqx.filter_jit(lambda mpc, plan, y: mpc.solve(plan, y, 0.0))
+
+
+@pytest.mark.parametrize("kind", [
+    pytest.param("terminal cost", marks=pytest.mark.slow(reason="two more compiled programs; the default-run "
+                                                              "sibling 'terminal constraint, bounds active' checks "
+                                                              "the same loop against a stricter KKT test")),
+    "terminal constraint, bounds active",
+    pytest.param("terminal penalty, exact Hessian", marks=pytest.mark.slow(
+        reason="two more compiled programs; the default-run sibling 'terminal constraint, bounds active' checks "
+               "the same loop (the penalty's optimum is checked as the terminal cost's)"))])
+def test_shrinking_loop_reproduces_the_open_loop_optimum(kind):
+    """Model = plant, no disturbance, shrinking horizon, converged solves: the closed
+    loop's inputs and states are the open-loop optimum's to 1e-6 (Bellman's principle
+    for the discrete problem), and that optimum satisfies the KKT conditions computed
+    here by single shooting: the gradient of J plus the constraints' Jacobian times
+    least-squares multipliers vanishes on the inputs off their bounds, points outward
+    on those at a bound, and psi = 0."""
+    bound = 0.2  # the unconstrained optimum reaches |u| = 0.26
+    extra = {}
+    if kind == "terminal cost":
+        ocp = _terminal_cost_ocp()
+    elif kind.startswith("terminal penalty"):
+        ocp = controls.OCP(CAT, X0, T, Effort(), terminal_constraints=ShapeAt(TARGET[:2]))
+        extra = dict(terminal="penalty", terminal_weight=100.0, hessian="exact")
+    else:
+        ocp = _constrained_ocp(bound)
+    mpc = MPC(ocp, PERIOD, N, mode="converged", horizon="shrinking", substeps=2, tol=1e-10, **extra)
+    plan, status = _solve(mpc, mpc.init(), X0)
+    assert bool(status.converged) and not bool(status.fallback)
+    u = np.asarray(plan.u)
+
+    run = _single_shooting(mpc)
+    if kind.startswith("terminal penalty"):  # J + w |psi|^2, no constraints left
+        plain = run
+        run = lambda v: (plain(v)[0] + 100.0 * jnp.sum(plain(v)[1] ** 2), jnp.zeros(0))  # noqa: E731
+    J, psi = jax.jit(run)(jnp.asarray(u))
+    g = np.asarray(jax.grad(lambda v: run(v)[0])(jnp.asarray(u))).ravel()
+    assert abs(float(J) - float(status.cost)) < 1e-12 * max(1.0, abs(float(J)))
+    if kind != "terminal constraint, bounds active":
+        assert np.abs(g).max() < 1e-8 * max(1.0, float(J))
+    else:
+        assert np.abs(np.asarray(psi)).max() < 1e-9
+        A = np.asarray(jax.jacfwd(lambda v: run(v)[1])(jnp.asarray(u))).reshape(len(psi), -1)
+        at_lo, at_hi = u.ravel() <= -bound + 1e-7, u.ravel() >= bound - 1e-7
+        assert (at_lo | at_hi).sum() >= 2, "the test wants the bounds active somewhere"
+        free = ~(at_lo | at_hi)
+        nu = np.linalg.lstsq(A[:, free].T, -g[free], rcond=None)[0]
+        r = g + A.T @ nu  # dJ/du + nu . dpsi/du
+        assert np.abs(r[free]).max() < 1e-7 * np.abs(g).max()
+        assert np.all(r[at_lo] > -1e-9) and np.all(r[at_hi] < 1e-9)  # pushing against the bound
+
+    loop = closed_loop(mpc, CAT, X0, N)
+    assert not np.asarray(loop.status.fallback).any() and np.asarray(loop.status.converged).all()
+    np.testing.assert_allclose(np.asarray(loop.inputs), u, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(loop.trajectory.xs), np.asarray(plan.s), rtol=0, atol=1e-6)
+    # the plant's running cost plus the terminal part at the plant's final state
+    phi, psi_end = ocp.terminal(loop.trajectory.xs[-1])
+    final = float(phi) + (100.0 * float(jnp.sum(psi_end**2)) if kind.startswith("terminal penalty") else 0.0)
+    assert abs(float(loop.cost) + final - float(J)) < 1e-6
+
+
+@pytest.mark.slow(reason="compiles the per-period step and plant programs; the default-run sibling "
+                         "test_push_is_rejected_by_the_real_time_iteration runs the same loop as one scan")
+def test_timed_loop_is_the_scanned_loop():
+    """closed_loop(timing=True) steps the same per-period functions from Python: the
+    same inputs and states as the scanned loop, and a positive solve time per period."""
+    mpc, plant = _regulator(1.1)
+    kick = [(0.5, np.array([0.0, 0.0, 0.0, 1.5, 1.0]))]
+    scanned = closed_loop(mpc, plant, X0, PERIODS, pushes=kick)
+    timed = closed_loop(mpc, plant, X0, PERIODS, pushes=kick, timing=True)
+    np.testing.assert_allclose(np.asarray(timed.inputs), np.asarray(scanned.inputs), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(timed.trajectory.xs), np.asarray(scanned.trajectory.xs), rtol=0,
+                               atol=1e-10)
+    assert np.all(np.asarray(timed.status.solve_ms) > 0) and np.isnan(np.asarray(scanned.status.solve_ms)).all()
+
+
+def _regulator(I1_scale=1.0):
+    """Receding-horizon regulation of the shape to (0.8, 0) at rest (psi is free: it is
+    not stabilizable by a smooth feedback at rest)."""
+    target = jnp.array([0.8, 0.0, 0.0, 0.0, 0.0])
+    w = jnp.array([50.0, 50.0, 0.0, 1.0, 1.0])
+    ocp = controls.OCP(CAT, X0, T, Quadratic(target, w, jnp.asarray(1.0)), terminal_cost=Quadratic(target, 10 * w),
+                       u_lower=-3.0, u_upper=3.0)
+    return MPC(ocp, PERIOD, N, mode="rti", substeps=1), FallingCat(I1=CAT.I1 * I1_scale)
+
+
+def test_push_is_rejected_by_the_real_time_iteration():
+    """A kick of 1.5 rad/s on the bend rate and 1 rad/s on the twist rate at t = 0.5 s,
+    a plant whose inertia I1 is 10% above the model's: the shape error jumps, then
+    decays below a tenth of its peak within 1.5 s and stays there (the torques saturate
+    at their bound of 3 N m right after the kick); every period's QP succeeded, no
+    fallback."""
+    mpc, plant = _regulator(1.1)
+    kick = np.array([0.0, 0.0, 0.0, 1.5, 1.0])
+    loop = closed_loop(mpc, plant, X0, PERIODS, pushes=[(0.5, kick)])
+    xs, ts = np.asarray(loop.trajectory.xs), np.asarray(loop.trajectory.ts)
+    err = np.abs(xs[:, [0, 1]] - [0.8, 0.0]).max(1) + np.abs(xs[:, [3, 4]]).max(1) * PERIOD
+    peak = err[ts <= 1.0].max()
+    assert peak > 0.05  # the push moved the cat
+    assert err[ts >= 2.0].max() < 0.1 * peak
+    assert np.asarray(loop.status.qp_ok).all() and not np.asarray(loop.status.fallback).any()
+
+
+@pytest.mark.parametrize("mode", [
+    "rti", pytest.param("converged", marks=pytest.mark.slow(reason="one more compiled loop; the default-run sibling "
+                                                                   "'rti' checks the same statuses and fallback"))])
+def test_unreachable_terminal_constraint_is_reported_every_period(mode):
+    """|u| <= 1e-3 N m cannot bring the shape to the target in 1 s: every period's
+    horizon QP fails, the status says so (qp_ok False, fallback True, not converged,
+    cost NaN), and the inputs applied are the previous plan's next segment: here the
+    guess, shifted period after period (its tail repeats its last input)."""
+    ocp = controls.OCP(CAT, X0, T, Effort(), terminal_constraints=ShapeAt(jnp.array([1.4, 1.0])), u_lower=-1e-3,
+                       u_upper=1e-3)
+    mpc = MPC(ocp, PERIOD, N, mode=mode, qp_iter=40, max_iter=5)
+    guess = np.tile([[5e-4, -2e-4]], (N, 1))
+    loop = closed_loop(mpc, CAT, X0, 4, u_guess=guess)
+    st = loop.status
+    assert np.asarray(st.fallback).all() and not np.asarray(st.converged).any()
+    assert not np.asarray(st.qp_ok).all() and np.isnan(np.asarray(st.cost)).all()
+    np.testing.assert_array_equal(np.asarray(loop.inputs), np.tile(guess[:1], (4, 1)))
+
+
+def test_bad_input_gets_a_named_error_before_numerics():
+    ocp = _terminal_cost_ocp()
+    for kw, words in [(dict(period=0.0), "positive"), (dict(period=-0.1), "positive"),
+                      (dict(period=2.0), "shorter than the period"), (dict(period=0.15), "whole number")]:
+        with pytest.raises(MPCError, match=words):
+            MPC(ocp, kw["period"], N)
+    with pytest.raises(MPCError, match="vector state"):
+        from controls.tasks import sphere_steering
+
+        MPC(sphere_steering(ShellWithTop(), (0.1, 0.0), 1.0), 0.1, 10)
+    mpc = MPC(ocp, PERIOD, N)
+    with pytest.raises(MPCError, match="does not match the model"):
+        closed_loop(mpc, FallingCatKinematic(), X0, 3)
+    with pytest.raises(MPCError, match="does not match the model"):
+        closed_loop(mpc, ShellWithTop(), X0, 3)
+    with pytest.raises(MPCError, match="NaN"):
+        closed_loop(mpc, CAT, np.array([0.8, np.nan, 0, 0, 0]), 3)
+    with pytest.raises(MPCError, match="finite"):
+        closed_loop(mpc, CAT, X0, 3, measurement_noise=np.nan, key=jax.random.key(0))
+    with pytest.raises(MPCError, match="PRNG key"):
+        closed_loop(mpc, CAT, X0, 3, force_noise=0.01)
+    with pytest.raises(MPCError, match="NaN"):
+        closed_loop(mpc, CAT, X0, 3, pushes=[(0.2, [0, 0, 0, np.nan, 0])])
+    with pytest.raises(MPCError, match="members"):
+        closed_loop_batch(mpc, CAT, np.array([X0, X0 * np.nan]), 3)
+    with pytest.raises(MPCError, match="covers"):
+        closed_loop(MPC(ocp, PERIOD, N, horizon="shrinking"), CAT, X0, N + 1)
+    assert issubclass(MPCError, ProblemError) and issubclass(MPCError, ValueError)
+
+
+def test_batch_member_is_the_loop_run_alone():
+    """Three members with other starts, plant inertias (in_axes plant), pushes and
+    noise keys: each member's inputs, states, statuses and cost are those of
+    closed_loop on the member alone (the same numbers up to rounding)."""
+    mpc, _ = _regulator()
+    scales = np.array([1.0, 1.1, 0.9])
+    plants = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[FallingCat(I1=CAT.I1 * s) for s in scales])
+    X = np.asarray(X0) + np.array([[0.0, 0, 0, 0, 0], [0.05, -0.1, 0, 0, 0.2], [-0.1, 0.05, 0, 0.3, 0]])
+    kicks = np.zeros((3, 1, 5))
+    kicks[1, 0, 3] = 1.0
+    times = np.full((3, 1), 0.3)
+    keys = jax.random.split(jax.random.key(7), 3)
+    noise = dict(force_noise=0.01, measurement_noise=1e-3)
+    batch = closed_loop_batch(mpc, plants, X, PERIODS, in_axes={"plant": 0}, pushes=(times, kicks), keys=keys, **noise)
+    for i in (1, 2):
+        alone = closed_loop(mpc, FallingCat(I1=CAT.I1 * scales[i]), X[i], PERIODS, pushes=[(0.3, kicks[i, 0])],
+                            key=keys[i], **noise)
+        np.testing.assert_allclose(np.asarray(batch.inputs[i]), np.asarray(alone.inputs), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(batch.trajectory.xs[i]), np.asarray(alone.trajectory.xs), rtol=0,
+                                   atol=1e-10)
+        np.testing.assert_array_equal(np.asarray(batch.status.fallback[i]), np.asarray(alone.status.fallback))
+        assert abs(float(batch.cost[i]) - float(alone.cost)) < 1e-10
+
+
+def test_box_qp_meets_its_optimality_conditions():
+    """A random strictly convex QP with two equalities and a box that binds: the
+    returned step and multipliers satisfy stationarity, feasibility and
+    complementarity to 1e-9; an infeasible box reports ok = False."""
+    rng = np.random.default_rng(3)
+    n = 12
+    M = rng.standard_normal((n, n))
+    H = M @ M.T + 0.1 * np.eye(n)
+    g = 5 * rng.standard_normal(n)
+    A = rng.standard_normal((2, n))
+    b = rng.standard_normal(2) * 0.1
+    lo, hi = -0.3 * np.ones(n), 0.3 * np.ones(n)
+    lo[0], hi[1] = -np.inf, np.inf
+    d, y, ok, _ = jax.jit(box_qp)(*(jnp.asarray(a) for a in (H, g, A, b, lo, hi)))
+    d, y = np.asarray(d), np.asarray(y)
+    assert bool(ok)
+    assert np.abs(A @ d - b).max() < 1e-9 and np.all(d >= lo - 1e-12) and np.all(d <= hi + 1e-12)
+    z = H @ d + g - A.T @ y  # = z_lo - z_hi
+    active_lo, active_hi = d <= lo + 1e-7, d >= hi - 1e-7
+    assert (active_lo | active_hi).sum() >= 2
+    assert np.abs(z[~(active_lo | active_hi)]).max() < 1e-8
+    assert np.all(z[active_lo] > -1e-9) and np.all(z[active_hi] < 1e-9)
+    # infeasible: sum(d) = 10 with |d_i| <= 0.3
+    _, _, ok, _ = jax.jit(box_qp)(jnp.asarray(H), jnp.asarray(g), jnp.ones((1, n)), jnp.array([10.0]),
+                                  jnp.full(n, -0.3), jnp.full(n, 0.3))
+    assert not bool(ok)
