@@ -10,8 +10,7 @@
    optimum's costates; their costs side by side, ``pmp_residual`` of both.
 3. Thruster steering: the chain with a thruster per body moves from rest to rest
    at a target pose (x, y, angle), least int |u|^2 (torques and thrusts): the
-   Newton direct method from small seeded random inputs, Pontryagin from its
-   costates.
+   Newton direct method from zero inputs, Pontryagin from its costates.
 
 Writes to ``--out`` (default: ./planar_chain/) planar_chain_geometry.png, planar_chain_reorientation.png,
 planar_chain_steering.png, planar_chain.json and planar_chain.gif (the
@@ -227,14 +226,8 @@ def steering(target, T, degree):
     phi0 = jnp.asarray(PHI0)
     ocp = chain_steering(chain, target, T, phi0)
     param = controls.Chebyshev(degree, T, chain.control_dim)
-    # Not from zero inputs: the chain then stays at rest, the adaptive solve takes a few
-    # long steps, and the constraints' Jacobian (forward sensitivities, which the step
-    # control does not see) misses the final momenta's first-order response to the
-    # inputs, so that Gauss-Newton cannot leave the start. Small inputs (1e-2 N, N m)
-    # make the solve resolve them.
-    guess = 0.01 * np.random.default_rng(0).normal(size=param.size)
-    d, ind, res_d, info = solve_both(ocp, param, guess)
-    info.update(target=list(target), T=T, phi0=list(PHI0), chebyshev_degree=degree, start="0.01 N(0, 1), seed 0")
+    d, ind, res_d, info = solve_both(ocp, param, jnp.zeros(param.size))
+    info.update(target=list(target), T=T, phi0=list(PHI0), chebyshev_degree=degree, start="zero inputs")
     return dict(chain=chain, ocp=ocp, direct=d, indirect=ind, info=info)
 
 
