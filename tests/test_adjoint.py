@@ -207,6 +207,7 @@ def test_vmapped_gradients_equal_one_by_one():
     assert max(steps) > 5 * min(steps), steps  # measured 39, 80, 271 accepted steps
 
 
+@pytest.mark.slow  # (vmapped discrete-adjoint gradients = one by one: test_vmapped_gradients_equal_one_by_one; the tangents mode on defaults: test_first_answers; make test-all)
 def test_vmapped_tangent_gradients_equal_one_by_one():
     """The tangents mode (D = 2 amplitudes) under vmap, members spinning at different
     rates (different step counts)."""

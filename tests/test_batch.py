@@ -173,6 +173,7 @@ def test_group_valued_states_projection_jumps_and_other_solvers():
         assert int(tr.num_steps[i]) == int(one.num_steps)
 
 
+@pytest.mark.slow  # (large arguments flagged: test_fast_trig.py::test_rewrite_replaces_nested_calls_and_flags_large_arguments; make test-all)
 def test_angles_beyond_the_fast_sine_range_rerun_with_the_library_sine():
     """A control phase of 1e7 rad puts sin/cos arguments beyond fast_trig.LIMIT: the
     chunk reports it and is solved again with libm's functions, matching simulate()."""

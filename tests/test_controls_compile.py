@@ -66,6 +66,7 @@ def counts():
     return dict(TRACES), nsim.TRACES["solve"]
 
 
+@pytest.mark.slow  # (stored solver programs: test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them; the LQ optimum: test_controls.py::test_lq_both_methods_reach_the_analytic_optimum; make test-all)
 def test_new_numbers_do_not_retrace_and_reach_their_own_optimum():
     first = ((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
     second = ((0.3, -0.5), (1.4, 0.2), 1.7, 2.5, 0.8)  # every number changed, T too
