@@ -101,6 +101,36 @@ def test_gradient_of_shooting_cost_matches_fd():
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
 
 
+@pytest.mark.parametrize("kind", ["constant", "linear"])
+def test_shooting_jacobian_at_rest_is_the_exact_one(kind):
+    """At zero inputs the double integrator stays at rest and the step control sees no
+    error; the shooting solves' steps stop at the knots (controls.newton._step_controller),
+    and the Jacobian of (J, q(T), v(T)) in the knot values is the exact one:
+    q(T) = int_0^T (T - t) u dt, v(T) = int_0^T u dt, J = 0 (a step cap alone, with steps
+    straddling the knots, gave 0.1214 and 0.1286 for dv(T)/du at the ends instead of 0.125)."""
+    from controls import newton as nt
+
+    T, n = 1.0, 8
+    param = (controls.PiecewiseConstant if kind == "constant" else controls.PiecewiseLinear)(n, T, 1)
+    sh = nt._Shooting(lq_problem(T), param, jnp.asarray(1e-10), jnp.asarray(1e-10))
+    y, D = (np.asarray(a) for a in nt._values_and_jacobian(sh, np.zeros(param.size)))
+    np.testing.assert_allclose(y, [0.0, -1.0, 0.0], atol=1e-15)
+    h = T / n
+    if kind == "constant":  # u = u_k on [k h, (k + 1) h]
+        dq = h * (T - h * (np.arange(n) + 0.5))
+        dv = np.full(n, h)
+    else:  # hat functions phi_k: int phi_k = h (h/2 at the ends), int (T - t) phi_k = h (T - t_k)
+        t = h * np.arange(n + 1)  # inside (symmetric hats), T h/2 - h^2/6 and h^2/6 at the ends
+        dv = np.full(n + 1, h)
+        dv[[0, -1]] = h / 2
+        dq = dv * (T - t)
+        dq[0] -= h**2 / 6
+        dq[-1] += h**2 / 6
+    np.testing.assert_allclose(D[0], 0.0, atol=1e-15)
+    np.testing.assert_allclose(D[1], dq, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(D[2], dv, rtol=1e-12, atol=1e-15)
+
+
 def test_bad_problems_are_named():
     with pytest.raises(controls.ProblemError, match="scalar"):
         controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=lambda t, x, u: u)

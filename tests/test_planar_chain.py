@@ -245,7 +245,7 @@ def test_thruster_steering_reaches_the_target_pose_at_rest():
 
     chain, phi0, T, target = PlanarChain(thrusters=True), jnp.array([0.5, 0.5]), 3.0, (0.5, 0.3, 0.3)
     ocp = chain_steering(chain, target, T, phi0)
-    param = controls.Chebyshev(6, T, chain.control_dim)
+    param = controls.Chebyshev(12, T, chain.control_dim)
     d = controls.solve_direct_newton(ocp, param, jnp.zeros(param.size), progress=False)
     assert d.converged and d.violation < 1e-9, d.message
     q = controls.solve_direct(ocp, param, jnp.zeros(param.size), progress=False)
