@@ -131,6 +131,7 @@ def test_prepared_solver_programs_are_the_ones_the_solvers_call(tmp_path, monkey
     np.testing.assert_allclose(res["multipliers"], ind.nu, rtol=1e-6)
 
 
+@pytest.mark.slow  # (a program with a host callback is not stored: test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them would see it compiled again; make test-all)
 def test_compiled_programs_have_no_host_callbacks():
     """The merit/gradient program of solve_direct and the whole Pontryagin solve lower
     without host callbacks (equinox's runtime errors are traced as NaN); the same merit

@@ -117,6 +117,7 @@ def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum)
     assert r.min_theta > 0.1  # the optimum itself keeps away from the straight cat
 
 
+@pytest.mark.slow  # (free winding from two starts to one optimum, with the polish: test_free_winding_somersault_in_smooth_coordinates; make test-all)
 def test_free_winding_hard_starts_reach_the_mirror_optima(chart_cat):
     """At theta0 = 0.4 the circle start (winding 0) and the double loop (winding 2) start
     far from the optimum, with multipliers ~100x their final size: SQP's l1 penalty must
