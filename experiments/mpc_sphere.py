@@ -45,6 +45,8 @@ import controls
 from controls.tasks import ReducedSteering, shell_push, sphere_steering_reduced, sphere_tracking
 from nhjax.scenes import ShellWithTop
 
+from ._peers import import_peers
+
 PERIOD, INTERVALS, HORIZON = 0.05, 20, 1.0
 PUSH_TIME, PUSH_DV = 5.0, (0.3, 0.0)  # [s], [m/s]
 HEAVIER = 1.1  # the plant's top: mass and inertia
@@ -75,15 +77,10 @@ def run_nhjax(periods):
 
 
 def run_ipopt(periods):
-    here = Path(__file__).resolve().parents[1] / "benchmarks" / "peers"
-    if not here.is_dir():
-        return None, "the CasADi peer lives in a source checkout (benchmarks/peers)"
-    sys.path.insert(0, str(here))
-    try:
-        import casadi_mpc_sphere as peer
-        from casadi_steering import ROBOT
-    except ImportError as e:
-        return None, f"casadi is not installed ({e}); pip install -e '.[peers]'"
+    peers, why = import_peers("casadi_mpc_sphere", "casadi_steering")
+    if peers is None:
+        return None, why
+    peer, ROBOT = peers[0], peers[1].ROBOT
     robot = ShellWithTop()
     tic = time.perf_counter()
     nlp = peer.build(N=INTERVALS, T=HORIZON)

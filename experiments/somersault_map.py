@@ -46,6 +46,8 @@ import controls
 from controls.tasks import fixed_theta_costates, velocity_somersault_chart
 from nhjax.scenes import FallingCatKinematic
 
+from ._peers import import_peers
+
 T = 2.0
 BENDS = (0.4, 1.0)  # theta0 [rad]
 TURNS = (-4.0, -2.0)  # turn of psi [rad]
@@ -87,14 +89,10 @@ def solve_map(cat, bends, turns, stages, progress=False):
 def ipopt_map(bends, turns):
     """IPOPT on each member one by one along a snake through the grid, each from its
     neighbour's solution: costs [bend][turn], success, the solves' seconds, the build's."""
-    here = Path(__file__).resolve().parents[1] / "benchmarks" / "peers"
-    if not here.is_dir():
-        return None, "the CasADi peer lives in a source checkout (benchmarks/peers)"
-    sys.path.insert(0, str(here))
-    try:
-        import casadi_somersault as peer
-    except ImportError as e:
-        return None, f"casadi is not installed ({e}); pip install -e '.[peers]'"
+    peers, why = import_peers("casadi_somersault")
+    if peers is None:
+        return None, why
+    (peer,) = peers
     nlp = peer.build_grid(N=40, controls="pl", substeps=4, T=T)
     costs = np.full((len(bends), len(turns)), np.nan)
     success = np.zeros_like(costs, dtype=bool)
