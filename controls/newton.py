@@ -47,7 +47,6 @@ import numpy as np
 import nhjax
 
 from ._result import DirectResult
-from .parametrize import CubicSpline, PiecewiseConstant, PiecewiseLinear, _knots
 from .problem import (
     OCP,
     ProblemError,
@@ -99,12 +98,13 @@ class _Shooting(eqx.Module):
 
 
 def _step_controller(param, rtol, atol):
-    """The step-size control of a shooting solve over ``param``: the inputs of a
-    piecewise parametrization change smoothly between its knots, so the steps stop at
-    them (diffrax's ``jump_ts``); a smooth one (Chebyshev, Fourier) gets steps of at most
-    its horizon over its number of parameters per input (one step per degree of freedom)."""
-    if isinstance(param, (PiecewiseConstant, PiecewiseLinear, CubicSpline)):
-        return diffrax.PIDController(rtol=rtol, atol=atol, jump_ts=_knots(param)[1:-1])
+    """The step-size control of a shooting solve over ``param``: the steps stop where its
+    signal is not smooth (``param.jump_times()``, the knots of a piecewise one: diffrax's
+    ``jump_ts``); a smooth signal (Chebyshev, Fourier) gets steps of at most its horizon
+    over its number of parameters per input (one step per degree of freedom)."""
+    jumps = param.jump_times()
+    if jumps is not None:
+        return diffrax.PIDController(rtol=rtol, atol=atol, jump_ts=jumps)
     return diffrax.PIDController(rtol=rtol, atol=atol, dtmax=param.T / max(param.size // max(param.dim, 1), 1))
 
 

@@ -68,6 +68,8 @@ class Parametrization(eqx.Module):
     t0: float = eqx.field(static=True, default=0.0)
 
     MIN_N = 1
+    #: whether the signal is piecewise between its n + 1 knots (not smooth at them)
+    PIECEWISE = False
 
     def __init__(self, n, T, dim, t0=0.0):
         owner = type(self).__name__
@@ -91,6 +93,12 @@ class Parametrization(eqx.Module):
             f"{type(self).__name__} cannot impose control bounds exactly; use "
             "PiecewiseConstant or PiecewiseLinear for a bounded control"
         )
+
+    def jump_times(self):
+        """Times inside the horizon where the signal is not smooth (the inner knots of a
+        piecewise one, ``PIECEWISE``), at which a solve should end its steps; None for a
+        smooth basis (Chebyshev, Fourier)."""
+        return _knots(self)[1:-1] if self.PIECEWISE else None
 
     def sample_times(self):
         """Times at which ``fit`` samples a target function."""
@@ -155,6 +163,8 @@ def fit_samples(param, ts, us):
 
 
 class PiecewiseConstant(Parametrization):
+    PIECEWISE = True
+
     @property
     def size(self):
         return self.n * self.dim
@@ -168,6 +178,8 @@ class PiecewiseConstant(Parametrization):
 
 
 class PiecewiseLinear(Parametrization):
+    PIECEWISE = True
+
     @property
     def size(self):
         return (self.n + 1) * self.dim
@@ -197,6 +209,8 @@ class _SplineSignal(eqx.Module):
 
 
 class CubicSpline(Parametrization):
+    PIECEWISE = True
+
     @property
     def size(self):
         return (self.n + 1) * self.dim
