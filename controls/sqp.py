@@ -55,12 +55,16 @@ __all__ = ["prepare_direct_sqp", "solve_direct_sqp"]
 def _kkt_solve(H, A, r1, r2):
     """[[H, -A^T], [A, 0]] (dx, dy) = (r1, r2) (a least-squares solve if singular)."""
     n, m = H.shape[0], A.shape[0]
-    K = np.block([[H, -A.T], [A, np.zeros((m, m))]])
+    K = np.zeros((n + m, n + m))  # (filled in place: np.block costs more than the solve here)
+    K[:n, :n], K[:n, n:], K[n:, :n] = H, -A.T, A
     rhs = np.concatenate([r1, r2])
     try:
         sol = np.linalg.solve(K, rhs)
     except np.linalg.LinAlgError:
-        sol = np.linalg.lstsq(K, rhs, rcond=None)[0]
+        try:
+            sol = np.linalg.lstsq(K, rhs, rcond=None)[0]
+        except np.linalg.LinAlgError:  # NaN/inf in K (an interior point that diverged: no solution)
+            sol = np.full(n + m, np.nan)
     return sol[:n], sol[n:]
 
 
@@ -183,107 +187,28 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
     owner = "solve_direct_sqp"
     _check_sqp(ocp, param, owner, rtol, atol)
     check_tolerances(owner, ctol=ctol, gtol=gtol, ftol=ftol, max_iter=(max_iter, "int"))
-    m, P = ocp.n_constraints, param.size
+    P = param.size
     # host (numpy) iterates: an eager jax operation is a program of its own in a new process
     z = np.zeros(P) if guess is None else np.asarray(check_guess("guess", guess, (P,), "parametrization"), float)
-    lo, hi = np.full(P, -np.inf), np.full(P, np.inf)
-    if ocp.u_lower is not None:
-        lo, hi = (np.asarray(a, float) for a in param.param_bounds(ocp.u_lower, ocp.u_upper))
-        z = np.clip(z, lo, hi)
+    lo, hi = parameter_bounds(ocp, param)
+    z = np.clip(z, lo, hi)
     sh = _Shooting(ocp, param, host_array(rtol), host_array(atol))
     _prepare(sh, z)  # the Hessian's program compiles beside the Jacobian's
-
-    def evaluate(z):
-        y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
-        return (y, D) if np.all(np.isfinite(y)) and np.all(np.isfinite(D)) else (None, None)
-
-    y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
-    if not np.all(np.isfinite(y)):
-        raise ProblemError("the cost or the terminal constraints are not finite at the initial guess (the guess "
-                           "may drive the state out of its chart, e.g. through a singular configuration)")
-    check_differentiable(D)
-    B = np.asarray(_control_cost_hessian(ocp, param, z))
-    B = 0.5 * (B + B.T)
-    ev = np.linalg.eigvalsh(B)
-    if not (np.all(np.isfinite(ev)) and ev.min() > 1e-8 * max(ev.max(), 0.0)):
-        B = np.eye(P) * max(1.0, np.abs(D[0]).max())
-    history = {"cost": [], "violation": [], "stationarity": [], "step": [], "seconds": []}
+    hessian = np.asarray(_control_cost_hessian(ocp, param, z))
     bar = Progress(progress, max_iter, "direct (SQP)")
-    mu, converged, msg, alpha, lam, it = 0.0, False, "max_iter reached", 0.0, np.zeros(m), 0
 
+    def report(it, cost, viol, stat, alpha):
+        bar.update(iteration=it, cost=cost, violation=f"{viol:.1e}", stationarity=f"{stat:.1e}", step=f"{alpha:.3g}")
+
+    iteration = sqp_iteration(z, lo, hi, hessian, ctol, gtol, ftol, max_iter, t_start, report)
+    converged = False
     try:
-        for it in range(max_iter + 1):
-            g, A, c = D[0], D[1:], y[1:]
-            d, yq, zl, zu = qp_box(B, g, A, -c, lo - z, hi - z)
-            if not (np.all(np.isfinite(d)) and np.all(np.isfinite(yq))) or (
-                    m and np.abs(A @ d + c).max() > 1e-8 * max(1.0, np.abs(c).max())):
-                msg = ("the linearized terminal constraints cannot be met within the control bounds (the QP "
-                       "has no solution): the target may be unreachable within the bounds or the horizon")
-                break
-            # parameters the QP holds at a bound (active, with a positive multiplier)
-            at_bound = ((z + d - lo <= 1e-9 * np.maximum(1.0, np.abs(lo))) & (zl > 1e-10)) | (
-                (hi - z - d <= 1e-9 * np.maximum(1.0, np.abs(hi))) & (zu > 1e-10))
-            stat, lam = _stationarity(g, A, ~at_bound)
-            viol = float(np.abs(c).max(initial=0.0))
-            for k, v in (("cost", float(y[0])), ("violation", viol), ("stationarity", stat), ("step", alpha),
-                         ("seconds", time.perf_counter() - t_start)):
-                history[k].append(v)
-            bar.update(iteration=it, cost=float(y[0]), violation=f"{viol:.1e}", stationarity=f"{stat:.1e}",
-                       step=f"{alpha:.3g}")
-            dBd = max(d @ B @ d, 0.0)
-            predicted = abs(g @ d + 0.5 * dBd)  # the QP's cost change
-            if viol < ctol and (stat < gtol or predicted <= ftol * max(1.0, abs(float(y[0])))):
-                converged, msg = True, "converged: constraints and stationarity within tolerance"
-                break
-            if it == max_iter:
-                break
-            # l1 merit J + mu |psi|_1, mu large enough for d to be a descent direction (N&W
-            # (18.36)) and above the multipliers' size. Set afresh each iteration, not kept
-            # as the largest so far: a penalty fixed by large multipliers far from the
-            # optimum (|y| ~ 20 on a free-winding start, ~0.1 later) held the steps to
-            # 1/64 for 40 iterations; two starts failed with it
-            c1 = np.abs(c).sum()
-            if c1 > 0:
-                mu = max((g @ d + 0.5 * dBd) / (0.5 * c1), 1.1 * np.abs(yq).max(initial=0.0))
-            merit = y[0] + mu * c1
-            slope = g @ d - mu * c1
-
-            def sufficient(y_t, alpha):  # Armijo on the merit
-                return y_t is not None and y_t[0] + mu * np.abs(y_t[1:]).sum() <= \
-                    merit + 1e-4 * alpha * min(slope, 0.0) + 1e-14 * abs(merit)
-
-            alpha, accepted = 1.0, False
-            for trial in range(30):
-                z_t = np.clip(z + alpha * d, lo, hi)
-                y_t, D_t = evaluate(z_t)
-                if sufficient(y_t, alpha):
-                    accepted = True
-                    break
-                if trial == 0 and y_t is not None:
-                    # second-order correction: the least-norm step back onto psi's linearization
-                    corr = -A.T @ np.linalg.lstsq(A @ A.T, y_t[1:], rcond=None)[0] if m else 0.0
-                    z_s = np.clip(z + d + corr, lo, hi)
-                    y_s, D_s = evaluate(z_s)
-                    if sufficient(y_s, 1.0):
-                        z_t, y_t, D_t, accepted = z_s, y_s, D_s, True
-                        break
-                alpha *= 0.5
-            if not accepted:
-                msg = "line search failed (the merit does not decrease along the SQP step)"
-                if stat < 1e2 * gtol and viol < ctol:
-                    msg += f"; stationarity {stat:.1e} is near the tolerance, at the noise of the integration"
-                break
-            # damped BFGS on the Lagrangian J - yq . psi (N&W Procedure 18.2)
-            s = z_t - z
-            r = (D_t[0] - D_t[1:].T @ yq) - (g - A.T @ yq)
-            Bs = B @ s
-            sBs, sr = s @ Bs, s @ r
-            if sBs > 0:
-                theta = 1.0 if sr >= 0.2 * sBs else 0.8 * sBs / (sBs - sr)
-                r = theta * r + (1 - theta) * Bs
-                B = B - np.outer(Bs, Bs) / sBs + np.outer(r, r) / (s @ r)
-                B = 0.5 * (B + B.T)
-            z, y, D = z_t, y_t, D_t
+        z_request = next(iteration)
+        while True:
+            y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z_request))
+            z_request = iteration.send((y, D))
+    except StopIteration as stop:
+        z, y, lam, it, converged, msg, history = stop.value
     finally:
         bar.finish(converged)
     zj = host_array(z)
@@ -292,3 +217,116 @@ def solve_direct_sqp(ocp: OCP, param, guess=None, *, rtol=1e-10, atol=1e-10, cto
         multipliers=lam, iterations=it, converged=converged, message=msg, history=history,
         seconds=time.perf_counter() - t_start,
     )
+
+
+def parameter_bounds(ocp: OCP, param):
+    """(lo, hi): the box on the P parameters from the problem's control bounds
+    (``param.param_bounds``), or -inf/inf without bounds."""
+    if ocp.u_lower is None:
+        return np.full(param.size, -np.inf), np.full(param.size, np.inf)
+    return tuple(np.asarray(a, float) for a in param.param_bounds(ocp.u_lower, ocp.u_upper))
+
+
+def sqp_iteration(z, lo, hi, hessian, ctol, gtol, ftol, max_iter, t_start, report=None):
+    """The SQP iteration of ``solve_direct_sqp`` from ``z`` (inside [lo, hi]) as a
+    generator: it yields each point where it needs (J, psi) and their Jacobian D (rows
+    dJ/dz, dpsi/dz) and is sent back ``(y, D)`` (y = (J, psi)); it returns
+    ``(z, y, multipliers, iterations, converged, message, history)``. The caller owns
+    the simulations: ``solve_direct_sqp`` runs one at a time, ``solve_direct_batch``
+    sends many members' points to one vmapped program. ``hessian``: the running cost's
+    control Hessian at z (the first B, when positive definite). ``report(it, cost,
+    violation, stationarity, step)`` is called once per iteration.
+
+    Raises ProblemError (before any step) when (J, psi) or D is not usable at z."""
+    y, D = yield z
+    y, D = np.asarray(y), np.asarray(D)
+    if not np.all(np.isfinite(y)):
+        raise ProblemError("the cost or the terminal constraints are not finite at the initial guess (the guess "
+                           "may drive the state out of its chart, e.g. through a singular configuration)")
+    check_differentiable(D)
+    P, m = z.shape[0], y.shape[0] - 1
+    B = 0.5 * (hessian + hessian.T)
+    ev = np.linalg.eigvalsh(B)
+    if not (np.all(np.isfinite(ev)) and ev.min() > 1e-8 * max(ev.max(), 0.0)):
+        B = np.eye(P) * max(1.0, np.abs(D[0]).max())
+    history = {"cost": [], "violation": [], "stationarity": [], "step": [], "seconds": []}
+    mu, converged, msg, alpha, lam, it = 0.0, False, "max_iter reached", 0.0, np.zeros(m), 0
+
+    def evaluate(z):
+        y, D = yield z
+        y, D = np.asarray(y), np.asarray(D)
+        return (y, D) if np.all(np.isfinite(y)) and np.all(np.isfinite(D)) else (None, None)
+
+    for it in range(max_iter + 1):
+        g, A, c = D[0], D[1:], y[1:]
+        d, yq, zl, zu = qp_box(B, g, A, -c, lo - z, hi - z)
+        if not (np.all(np.isfinite(d)) and np.all(np.isfinite(yq))) or (
+                m and np.abs(A @ d + c).max() > 1e-8 * max(1.0, np.abs(c).max())):
+            msg = ("the linearized terminal constraints cannot be met within the control bounds (the QP "
+                   "has no solution): the target may be unreachable within the bounds or the horizon")
+            break
+        # parameters the QP holds at a bound (active, with a positive multiplier)
+        at_bound = ((z + d - lo <= 1e-9 * np.maximum(1.0, np.abs(lo))) & (zl > 1e-10)) | (
+            (hi - z - d <= 1e-9 * np.maximum(1.0, np.abs(hi))) & (zu > 1e-10))
+        stat, lam = _stationarity(g, A, ~at_bound)
+        viol = float(np.abs(c).max(initial=0.0))
+        for k, v in (("cost", float(y[0])), ("violation", viol), ("stationarity", stat), ("step", alpha),
+                     ("seconds", time.perf_counter() - t_start)):
+            history[k].append(v)
+        if report is not None:
+            report(it, float(y[0]), viol, stat, alpha)
+        dBd = max(d @ B @ d, 0.0)
+        predicted = abs(g @ d + 0.5 * dBd)  # the QP's cost change
+        if viol < ctol and (stat < gtol or predicted <= ftol * max(1.0, abs(float(y[0])))):
+            converged, msg = True, "converged: constraints and stationarity within tolerance"
+            break
+        if it == max_iter:
+            break
+        # l1 merit J + mu |psi|_1, mu large enough for d to be a descent direction (N&W
+        # (18.36)) and above the multipliers' size. Set afresh each iteration, not kept
+        # as the largest so far: a penalty fixed by large multipliers far from the
+        # optimum (|y| ~ 20 on a free-winding start, ~0.1 later) held the steps to
+        # 1/64 for 40 iterations; two starts failed with it
+        c1 = np.abs(c).sum()
+        if c1 > 0:
+            mu = max((g @ d + 0.5 * dBd) / (0.5 * c1), 1.1 * np.abs(yq).max(initial=0.0))
+        merit = y[0] + mu * c1
+        slope = g @ d - mu * c1
+
+        def sufficient(y_t, alpha):  # Armijo on the merit
+            return y_t is not None and y_t[0] + mu * np.abs(y_t[1:]).sum() <= \
+                merit + 1e-4 * alpha * min(slope, 0.0) + 1e-14 * abs(merit)
+
+        alpha, accepted = 1.0, False
+        for trial in range(30):
+            z_t = np.clip(z + alpha * d, lo, hi)
+            y_t, D_t = yield from evaluate(z_t)
+            if sufficient(y_t, alpha):
+                accepted = True
+                break
+            if trial == 0 and y_t is not None:
+                # second-order correction: the least-norm step back onto psi's linearization
+                corr = -A.T @ np.linalg.lstsq(A @ A.T, y_t[1:], rcond=None)[0] if m else 0.0
+                z_s = np.clip(z + d + corr, lo, hi)
+                y_s, D_s = yield from evaluate(z_s)
+                if sufficient(y_s, 1.0):
+                    z_t, y_t, D_t, accepted = z_s, y_s, D_s, True
+                    break
+            alpha *= 0.5
+        if not accepted:
+            msg = "line search failed (the merit does not decrease along the SQP step)"
+            if stat < 1e2 * gtol and viol < ctol:
+                msg += f"; stationarity {stat:.1e} is near the tolerance, at the noise of the integration"
+            break
+        # damped BFGS on the Lagrangian J - yq . psi (N&W Procedure 18.2)
+        s = z_t - z
+        r = (D_t[0] - D_t[1:].T @ yq) - (g - A.T @ yq)
+        Bs = B @ s
+        sBs, sr = s @ Bs, s @ r
+        if sBs > 0:
+            theta = 1.0 if sr >= 0.2 * sBs else 0.8 * sBs / (sBs - sr)
+            r = theta * r + (1 - theta) * Bs
+            B = B - np.outer(Bs, Bs) / sBs + np.outer(r, r) / (s @ r)
+            B = 0.5 * (B + B.T)
+        z, y, D = z_t, y_t, D_t
+    return z, y, lam, it, converged, msg, history
