@@ -5,10 +5,10 @@ default of solve_direct: damped-BFGS Hessians, exact constraint Jacobians,
 control bounds in its QP), a feasible-path Newton direct solver for small
 strongly-curved problems, with a residual check of the
 optimality conditions that applies to any solution, and grids of problems of one
-structure solved in one program (``solve_pontryagin_batch``), and closed-loop
+structure solved in one program (``solve_pontryagin_batch``, ``solve_direct_batch``), and closed-loop
 model-predictive control (``MPC``, ``closed_loop``, ``closed_loop_batch``)."""
 
-from .batch import BatchResult, GridError, solve_pontryagin_batch
+from .batch import BatchResult, DirectBatchResult, GridError, solve_direct_batch, solve_pontryagin_batch
 from .direct import DirectResult, solve_direct
 from .mpc import MPC, ClosedLoop, MPCError, MPCStatus, Plan, box_qp, closed_loop, closed_loop_batch
 from .newton import solve_direct_newton
@@ -30,6 +30,7 @@ __all__ = [
     "Chebyshev",
     "ClosedLoop",
     "CubicSpline",
+    "DirectBatchResult",
     "DirectResult",
     "Fourier",
     "GridError",
@@ -53,6 +54,7 @@ __all__ = [
     "prepare_pontryagin",
     "rollout",
     "solve_direct",
+    "solve_direct_batch",
     "solve_direct_newton",
     "solve_direct_sqp",
     "solve_pontryagin",

@@ -1,5 +1,6 @@
-"""Grids of optimal-control problems in one call: Pontryagin shooting on many problems
-of one structure at once.
+"""Grids of optimal-control problems in one call: Pontryagin shooting
+(``solve_pontryagin_batch``) and the direct method (``solve_direct_batch``) on many
+problems of one structure at once.
 
 ``solve_pontryagin_batch(ocps, p0_guess, nu_guess)`` takes a list of ``OCP``s that
 differ in numbers only (x0, targets, the horizon T, weights, the system's parameters)
@@ -20,6 +21,14 @@ whose numbers or guesses are NaN/inf is not run at all and is flagged instead).
 Members that differ in structure (other state or constraint sizes, another running
 cost or system type, another integer setting) cannot share a program: ``GridError``
 names the first member and the field that differ, before any numerics.
+
+``solve_direct_batch(ocps, param, guess)`` runs ``solve_direct_sqp``'s iteration
+(``controls.sqp.sqp_iteration``, a generator that asks for the points it needs
+simulated) on every member on the host, and simulates the points of all members still
+iterating in one compiled program per round (``_values_and_jacobian_batch``: the
+shooting's values and Jacobian, vmapped over ``lanes`` members). The QPs, line
+searches and Hessian updates stay per member, so each member takes the iterates it
+takes alone.
 """
 
 from __future__ import annotations
@@ -41,9 +50,14 @@ from .pontryagin import (
     _Shooting,
     _shooting_converged,
 )
+from ._result import DirectResult
+from .newton import _control_cost_hessian
+from .newton import _Shooting as _DirectShooting
 from .problem import OCP, ProblemError, Progress, check_tolerances, compiled, host_array
+from .sqp import _check_sqp, parameter_bounds, sqp_iteration
 
-__all__ = ["BatchResult", "GridError", "solve_pontryagin_batch", "stack_members"]
+__all__ = ["BatchResult", "DirectBatchResult", "GridError", "solve_direct_batch", "solve_pontryagin_batch",
+           "stack_members"]
 
 #: The statuses a member can end with.
 STATUSES = ("converged", "max_iterations", "stalled", "non_finite", "non_finite_input")
@@ -204,6 +218,27 @@ def _indirect_batch(sh, ocps, z0, tol, max_steps, damped: bool, lanes: int):
     return jax.lax.map(one, (dynamic, z0), batch_size=lanes)
 
 
+def _screen(stacked, z0, owner):
+    """Members whose numbers (the stacked pytree's number leaves) or starting guesses
+    (rows of ``z0``) hold NaN/inf are flagged, not run: their rows are filled with the
+    first finite member's (the program needs some numbers there). Returns (the stacked
+    pytree on the device, z0, finite (B,) bool)."""
+    B = z0.shape[0]
+    numbers = [leaf for leaf in jtu.tree_leaves(stacked) if _is_number(leaf) and np.ndim(leaf) >= 1]
+    finite = np.all(np.isfinite(z0), axis=1)
+    for leaf in numbers:
+        finite &= np.all(np.isfinite(np.asarray(leaf).reshape(B, -1)), axis=1)
+    if not finite.any():
+        raise ProblemError(f"{owner}: every member has NaN/inf numbers or guesses: nothing to solve")
+    if not finite.all():
+        donor = int(np.argmax(finite))
+        stacked = jtu.tree_map(lambda a: np.where(finite.reshape((B,) + (1,) * (np.ndim(a) - 1)), a, a[donor])
+                               if _is_number(a) and np.ndim(a) >= 1 else a, stacked)
+        z0 = np.where(finite[:, None], z0, z0[donor])
+    stacked = jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, stacked)
+    return stacked, z0, finite
+
+
 def _guesses(name, guess, B, size, owner):
     if guess is None:
         return np.zeros((B, size))
@@ -288,20 +323,7 @@ def solve_pontryagin_batch(
     n, m = ocps[0].x0.shape[0], ocps[0].n_constraints
     P0, NU = _guesses("p0_guess", p0_guess, B, n, owner), _guesses("nu_guess", nu_guess, B, m, owner)
     z0 = np.concatenate([P0, NU], axis=1)
-    # members whose numbers or guesses are NaN/inf are flagged, not run: their rows are
-    # filled with a finite member's (the program needs some numbers there)
-    numbers = [leaf for leaf in jtu.tree_leaves(stacked) if _is_number(leaf) and np.ndim(leaf) >= 1]
-    finite = np.all(np.isfinite(z0), axis=1)
-    for leaf in numbers:
-        finite &= np.all(np.isfinite(np.asarray(leaf).reshape(B, -1)), axis=1)
-    if not finite.any():
-        raise ProblemError(f"{owner}: every member has NaN/inf numbers or guesses: nothing to solve")
-    if not finite.all():
-        donor = int(np.argmax(finite))
-        stacked = jtu.tree_map(lambda a: np.where(finite.reshape((B,) + (1,) * (np.ndim(a) - 1)), a, a[donor])
-                               if _is_number(a) and np.ndim(a) >= 1 else a, stacked)
-        z0 = np.where(finite[:, None], z0, z0[donor])
-    stacked = jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, stacked)
+    stacked, z0, finite = _screen(stacked, z0, owner)
     bar = Progress(progress, 1, f"Pontryagin batch of {B} ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     options = (*_root_options(tol, max_steps, solver), min(int(lanes), B))
 
@@ -379,3 +401,209 @@ def _statuses(z, res, steps, finite, tol, max_steps, solver):
         status[i] = s
         reasons.append(why)
     return status.astype(str), reasons
+
+
+# ------------------------------------------------------------------ the direct method
+#: The statuses a member of ``solve_direct_batch`` can end with.
+DIRECT_STATUSES = ("converged", "max_iterations", "stalled", "infeasible", "non_finite", "non_finite_input")
+
+
+@dataclasses.dataclass(frozen=True)
+class DirectBatchResult:
+    """Outcome of ``solve_direct_batch``, member by member (axis 0 is the member).
+
+    params : (B, P) each member's optimal control parameters.
+    cost : (B,) Phi(x(T)) + int_0^T L dt at them; violation : (B,) max |psi(x(T))|.
+    multipliers : (B, m) lam (dJ + lam . dpsi = 0 over the parameters not at a bound).
+    iterations : (B,) SQP iterations each member took.
+    status : (B,) one of ``DIRECT_STATUSES``: "converged"; "max_iterations";
+        "stalled" (the line search found no decrease); "infeasible" (the linearized
+        terminal constraints cannot be met within the control bounds); "non_finite"
+        (the cost or constraints, or their derivatives, are not finite or all zero at
+        the member's guess); "non_finite_input" (NaN/inf in its numbers or guess: not
+        run). ``converged`` (B,) bool is status == "converged".
+    reasons : one sentence per member ("" when converged).
+    results : each member's ``DirectResult`` (as ``solve_direct_sqp`` returns it: its
+        control, message and history), None for a member that was not solved.
+    rounds : the batched evaluations the call made (every member that was still
+        iterating had one point simulated in each).
+    seconds : wall time of the call (the compile included on a first call) [s].
+    NaN rows for members that were not solved.
+    """
+
+    params: np.ndarray
+    cost: np.ndarray
+    violation: np.ndarray
+    multipliers: np.ndarray
+    iterations: np.ndarray
+    status: np.ndarray
+    reasons: list
+    results: list
+    rounds: int
+    seconds: float
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status == "converged"
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def counts(self) -> dict:
+        """How many members ended with each status."""
+        return {s: int(np.sum(self.status == s)) for s in DIRECT_STATUSES if np.any(self.status == s)}
+
+
+@compiled(errors="off")  # (equinox's checks would fail every member when one fails)
+def _values_and_jacobian_batch(sh, ocps, params, Z, lanes: int):
+    """``controls.newton._values_and_jacobian`` of the shooting ``sh`` with its problem
+    and parametrization replaced by each member's (``ocps``, ``params``: array leaves
+    with the member on axis 0; rows of ``Z`` the points): (Y, D), rows NaN for a member
+    whose simulation did not reach T (max steps, a guard) or is not finite. ``lanes``
+    members side by side (vmapped), the groups one after another (``jax.lax.map``)."""
+    ocp_dynamic, ocp_static = eqx.partition(ocps, eqx.is_array)
+    param_dynamic, param_static = eqx.partition(params, eqx.is_array)
+
+    def one(args):
+        od, pd, z = args
+        member = eqx.tree_at(lambda s: (s.ocp, s.param), sh,
+                             (eqx.combine(od, ocp_static), eqx.combine(pd, param_static)))
+        y, vjp, solved = jax.vjp(lambda z: member.values(z, tangents=True, solved=True), z, has_aux=True)
+        D = jax.vmap(vjp)(jnp.eye(y.shape[0], dtype=y.dtype))[0]
+        good = solved & jnp.all(jnp.isfinite(y)) & jnp.all(jnp.isfinite(D))
+        return jnp.where(good, y, jnp.nan), jnp.where(good, D, jnp.nan)
+
+    return jax.lax.map(one, (ocp_dynamic, param_dynamic, Z), batch_size=lanes)
+
+
+def _direct_status(result):
+    """(status, reason) of one member's ``DirectResult``."""
+    if result.converged:
+        return "converged", ""
+    msg = result.message
+    if msg.startswith("the linearized terminal constraints"):
+        return "infeasible", msg
+    if msg.startswith("line search failed"):
+        return "stalled", msg
+    return "max_iterations", f"{msg}: violation {result.violation:.2e} after {result.iterations} iterations"
+
+
+def solve_direct_batch(
+    ocps,
+    param,
+    guess=None,
+    *,
+    rtol: float = 1e-10,
+    atol: float = 1e-10,
+    ctol: float = 1e-8,
+    gtol: float = 1e-9,
+    ftol: float = 1e-12,
+    max_iter: int = 100,
+    max_ode_steps: int = 20_000,
+    lanes: int = 8,
+    progress: bool = True,
+) -> DirectBatchResult:
+    """The direct method (``solve_direct_sqp``, single shooting by SQP) on many problems
+    of one structure at once: the members' simulations run in one compiled program.
+
+    ocps : a list of B ``OCP``s that differ in numbers only (x0, targets, T, weights,
+        the system's parameters; ``GridError`` otherwise, before any numerics).
+    param : the parametrization of the inputs, shared, or a list of B of one structure
+        (e.g. each member's ``Chebyshev`` over its own horizon T).
+    guess : (P,) the same start for every member, or (B, P) one per member (default
+        zeros; clipped into each member's control bounds).
+    rtol, atol, ctol, gtol, ftol, max_iter : as ``solve_direct_sqp`` (shared).
+    max_ode_steps : the ODE step budget of each simulation (``solve_direct_sqp``'s);
+        the members of a group run in lockstep, so one whose trial point needs many
+        steps holds up its group that long.
+    lanes : members simulated side by side (vmapped; a group takes its slowest
+        member's steps); the groups run one after another in the same program.
+    progress : a progress line over the rounds, with the number of members still
+        iterating, and the status counts at the end.
+
+    Each member runs ``solve_direct_sqp``'s iteration (``controls.sqp.sqp_iteration``:
+    the QP, the line search, the BFGS update, on the host) on its own; whenever every
+    member still iterating needs a point simulated, the points go to one program
+    (``_values_and_jacobian_batch``) for all. A member's iterates are then those of
+    ``solve_direct_sqp`` on it alone (to the rounding of the vmapped program). A member
+    that ended, or one whose guess or numbers are NaN/inf (not run), does not hold up
+    or spoil the others; its status and reason say why. Nothing is raised for a
+    member that fails. Returns a ``DirectBatchResult``.
+    """
+    owner = "solve_direct_batch"
+    t_start = time.perf_counter()
+    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
+    if not ocps:
+        raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
+    B = len(ocps)
+    params = list(param) if isinstance(param, (list, tuple)) else [param] * B
+    if len(params) != B:
+        raise ProblemError(f"{owner}: {len(params)} parametrizations for {B} problems: pass one, or one per problem")
+    for i, o in enumerate(ocps):
+        if not isinstance(o, OCP):
+            raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
+    for o, p in zip(ocps, params):
+        _check_sqp(o, p, owner, rtol, atol)
+    check_tolerances(owner, ctol=ctol, gtol=gtol, ftol=ftol, max_iter=(max_iter, "int"),
+                     max_ode_steps=(max_ode_steps, "int"), lanes=(lanes, "int"))
+    stacked = stack_members(ocps, owner=owner, what="problem")  # structure first, before any numerics
+    stacked_params = stack_members(params, owner=owner, what="parametrization")
+    P, m = params[0].size, ocps[0].n_constraints
+    z0 = _guesses("guess", guess, B, P, owner)
+    bounds = [parameter_bounds(o, p) for o, p in zip(ocps, params)]
+    z0 = np.stack([np.clip(z, lo, hi) for z, (lo, hi) in zip(z0, bounds)])
+    (stacked, stacked_params), z0, finite = _screen((stacked, stacked_params), z0, owner)
+    sh = _DirectShooting(ocps[0], params[0], host_array(rtol), host_array(atol), int(max_ode_steps))
+    lanes = min(int(lanes), B)
+    bar = Progress(progress, 1, f"direct batch of {B} (SQP)")
+
+    # one SQP iteration per member, driven in lockstep: each round simulates the point
+    # every running member asked for, all in one call of the batched program
+    running, requests, results, failures = {}, z0.copy(), [None] * B, {}
+    for i in np.flatnonzero(finite):
+        i = int(i)
+        H = np.asarray(_control_cost_hessian(ocps[i], params[i], z0[i]))
+        running[i] = sqp_iteration(z0[i], *bounds[i], H, ctol, gtol, ftol, max_iter, t_start)
+    for i, it in running.items():
+        requests[i] = next(it)
+    rounds = 0
+    while running:
+        Y, D = (np.asarray(a) for a in _values_and_jacobian_batch(sh, stacked, stacked_params, requests, lanes))
+        rounds += 1
+        for i, it in list(running.items()):
+            try:
+                requests[i] = it.send((Y[i], D[i]))
+            except StopIteration as stop:
+                results[i] = stop.value
+                del running[i]
+            except ProblemError as e:  # the member's start: not finite, or no derivative
+                failures[i] = str(e)
+                del running[i]
+        bar.update(round=rounds, running=len(running))
+
+    params_out = np.full((B, P), np.nan)
+    cost, viol, iters = np.full(B, np.nan), np.full(B, np.nan), np.zeros(B, int)
+    lams = np.full((B, m), np.nan)
+    status, reasons, direct = np.empty(B, dtype=object), [], [None] * B
+    seconds = time.perf_counter() - t_start
+    for i in range(B):
+        if not finite[i]:
+            s, why = "non_finite_input", "its numbers or guess hold NaN/inf; not solved"
+        elif i in failures:
+            s, why = "non_finite", failures[i]
+        else:
+            z, y, lam, k, conv, msg, history = results[i]
+            zj = host_array(z)
+            direct[i] = DirectResult(params=zj, control=params[i].signal(zj), cost=float(y[0]),
+                                     violation=float(np.abs(y[1:]).max(initial=0.0)), multipliers=lam, iterations=k,
+                                     converged=conv, message=msg, history=history, seconds=seconds)
+            params_out[i], cost[i], viol[i], iters[i], lams[i] = z, y[0], direct[i].violation, k, lam
+            s, why = _direct_status(direct[i])
+        status[i] = s
+        reasons.append(why)
+    result = DirectBatchResult(params=params_out, cost=cost, violation=viol, multipliers=lams, iterations=iters,
+                               status=status.astype(str), reasons=reasons, results=direct, rounds=rounds,
+                               seconds=time.perf_counter() - t_start)
+    bar.update(**{k.replace("_", " "): v for k, v in result.counts().items()})
+    bar.finish(bool(result.converged.all()))
+    return result

@@ -79,8 +79,9 @@ class _Shooting(eqx.Module):
     atol: jax.Array
     max_steps: int = eqx.field(static=True, default=20_000)
 
-    def values(self, z, tangents=False):
-        """(J, psi) at z. Differentiated by the discrete adjoint: its VJP sweep (one
+    def values(self, z, tangents=False, solved=False):
+        """(J, psi) at z (with ``solved``: and whether the simulation reached T, for
+        programs traced without runtime checks, such as a batch's). Differentiated by the discrete adjoint: its VJP sweep (one
         reverse pass per cotangent), or with ``tangents`` its forward sensitivities (the
         solve carries dx/dz along: one pass gives the whole Jacobian).
 
@@ -91,10 +92,11 @@ class _Shooting(eqx.Module):
         coarse quadrature of the inputs (on the thruster chain at rest the final momenta's
         response came out 0 instead of 0.54 per unit step)."""
         adjoint = nhjax.DiscreteAdjoint(jacobians="auto", max_tangents=z.shape[0] if tangents else 0)
-        _, J, psi = rollout(self.ocp, self.param.signal(z), rtol=self.rtol, atol=self.atol,
-                            max_steps=self.max_steps, adjoint=adjoint,
-                            stepsize_controller=_step_controller(self.param, self.rtol, self.atol))
-        return jnp.concatenate([J[None], psi])
+        traj, J, psi = rollout(self.ocp, self.param.signal(z), rtol=self.rtol, atol=self.atol,
+                               max_steps=self.max_steps, adjoint=adjoint,
+                               stepsize_controller=_step_controller(self.param, self.rtol, self.atol))
+        y = jnp.concatenate([J[None], psi])
+        return (y, traj.result == diffrax.RESULTS.successful) if solved else y
 
 
 def _step_controller(param, rtol, atol):

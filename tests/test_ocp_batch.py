@@ -1,4 +1,5 @@
-"""Grids of optimal-control problems in one call (controls.solve_pontryagin_batch).
+"""Grids of optimal-control problems in one call (controls.solve_pontryagin_batch and
+controls.solve_direct_batch).
 
 On the chart somersault (controls.tasks.velocity_somersault_chart): each member of a
 batch is the same solve as alone, the members on the fixed-theta loop's holonomy
@@ -82,8 +83,8 @@ def test_members_that_differ_in_structure_are_refused_by_name():
 def test_a_failing_member_does_not_spoil_the_others():
     """A member far from its start (bend 1.0 asked to turn by -4 rad straight from its
     loop) fails, a member with a NaN guess is flagged and not run; the others converge
-    to exactly what they reach in a batch without them, and a budget of one step
-    reports max_iterations for every member it stops."""
+    to what they reach alone (solve_pontryagin), and a budget of one step reports
+    max_iterations for every member it stops."""
     cat = FallingCatKinematic()
     good, zg = _members(cat, [0.5, 0.6], [-0.2, 0.1])
     far = velocity_somersault_chart(cat, 1.0, -4.0, T)
@@ -91,39 +92,109 @@ def test_a_failing_member_does_not_spoil_the_others():
     znan = zg[0].copy()
     znan[1] = np.nan
     ocps, z = good + [far, good[0]], np.vstack([zg, zf, znan])
-    # (lanes=2: groups of two and a remainder of one, the good pair a group of its own as in
-    # the batch without the others)
-    r = controls.solve_pontryagin_batch(ocps, z[:, :3], z[:, 3:], lanes=2, progress=False)
-    clean = controls.solve_pontryagin_batch(good, zg[:, :3], zg[:, 3:], progress=False)
+    # (four members: the program of the first test's batch)
+    r = controls.solve_pontryagin_batch(ocps, z[:, :3], z[:, 3:], progress=False)
     assert list(r.status[:2]) == ["converged", "converged"]
     assert r.status[2] in ("non_finite", "stalled", "max_iterations") and r.reasons[2]
     assert r.status[3] == "non_finite_input" and "NaN" in r.reasons[3] and np.isnan(r.cost[3])
-    np.testing.assert_array_equal(r.cost[:2], clean.cost)
-    np.testing.assert_array_equal(r.p0[:2], clean.p0)
+    for i in range(2):
+        alone = controls.solve_pontryagin(good[i], zg[i, :3], zg[i, 3:], progress=False)
+        assert abs(alone.cost - r.cost[i]) <= 1e-12 * abs(alone.cost)
+        np.testing.assert_allclose(r.p0[i], alone.p0, rtol=0, atol=1e-9)
     assert r.counts()["converged"] == 2
-    short = controls.solve_pontryagin_batch(good, zg[:, :3], zg[:, 3:], max_steps=1, progress=False)
-    assert list(short.status) == ["max_iterations"] * 2 and "1 steps" in short.reasons[0]
+    short = controls.solve_pontryagin_batch(ocps, z[:, :3], z[:, 3:], max_steps=1, progress=False)
+    assert list(short.status[:2]) == ["max_iterations"] * 2 and "1 steps" in short.reasons[0]
     with pytest.raises(controls.ProblemError, match="every member"):
         controls.solve_pontryagin_batch([good[0]], znan[:3], znan[3:], progress=False)
 
 
 def test_continuation_along_the_grid_converges_a_member_from_its_neighbour():
-    """Six turns of the bent cat (bend 1.0) from its loop's holonomy to -4 rad, all from
-    the loop's costates: the farthest fails from there; with grid=(6,) it is solved again
+    """Four turns of the bent cat (bend 1.0) from its loop's holonomy to -4 rad, all from
+    the loop's costates (four members: the first test's program): the farthest fails
+    from there; with grid=(4,) it is solved again
     from its converged neighbour's solution and converges, to an extremal that
     solve_pontryagin confirms (converged at once from it, the same cost to 1e-12); the
     grid's shape is checked before any numerics."""
     cat = FallingCatKinematic()
-    turns = _holonomy(cat, 1.0) + np.linspace(0.0, -4.0 - _holonomy(cat, 1.0), 6)
+    turns = _holonomy(cat, 1.0) + np.linspace(0.0, -4.0 - _holonomy(cat, 1.0), 4)
     ocps = [velocity_somersault_chart(cat, 1.0, t, T) for t in turns]
     z = np.concatenate(fixed_theta_costates(cat, 1.0, T))
     plain = controls.solve_pontryagin_batch(ocps, z[:3], z[3:], progress=False)
     assert not plain.converged[-1] and (plain.started_from == -1).all()
-    r = controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(6,), progress=False)
+    r = controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(4,), progress=False)
     assert r.converged.all() and r.started_from[-1] >= 0
     np.testing.assert_array_equal(r.cost[plain.converged], plain.cost[plain.converged])
     alone = controls.solve_pontryagin(ocps[-1], r.p0[-1], r.nu[-1], progress=False)
     assert alone.converged and alone.iterations <= 2
     assert abs(alone.cost - r.cost[-1]) <= 1e-12 * abs(alone.cost)
-    with pytest.raises(controls.ProblemError, match=r"grid \(2, 2\) does not hold the 6"):
-        controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(2, 2), progress=False)
+    with pytest.raises(controls.ProblemError, match=r"grid \(2, 3\) does not hold the 4"):
+        controls.solve_pontryagin_batch(ocps, z[:3], z[3:], grid=(2, 3), progress=False)
+
+
+# ------------------------------------------------------------------ the direct method
+def _loop_controls(param):
+    """The fixed-theta loop's inputs (theta', chi') = (0, 2 pi / T) in ``param`` (exact:
+    they are constant)."""
+    import jax.numpy as jnp
+
+    return np.asarray(param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])))
+
+
+def test_direct_batch_members_are_their_own_sqp_solves_and_failures_stay_apart():
+    """solve_direct_batch on the chart somersault, one call: members on their loop's
+    holonomy, off it, on a cat of other inertia, with control bounds that the turn
+    cannot be made within (infeasible), and with a NaN guess (not run). Each solved
+    member is solve_direct_sqp's solve on it alone (the same iterations; cost to 1e-12
+    relative, parameters to 1e-8), so the failures spoil nothing; the loop member's
+    cost is the loop's closed form; the failures have their statuses and reasons, and
+    NaN rows where nothing was solved."""
+    cat, other = FallingCatKinematic(), FallingCatKinematic(I1=0.12, lam=0.4, B=2.0)
+    param = controls.PiecewiseLinear(10, T, 2)
+
+    def bounded(o, b):  # the problem with |u_i| <= b [rad/s]
+        return controls.OCP(o.system, o.x0, T, o.running_cost, terminal_constraints=o.terminal_constraints,
+                            u_lower=-b, u_upper=b)
+
+    ocps, _ = _members(cat, [0.5, 0.6, 0.7], [0.0, -0.2, 0.15])
+    ocps.append(velocity_somersault_chart(other, 0.8, _holonomy(other, 0.8) - 0.1, T))
+    # |u| <= 10 is inactive at these optima; |u| <= 1 cannot wind chi = int u2 dt once in 2 s
+    ocps = [bounded(o, 10.0) for o in ocps] + [bounded(ocps[1], 1.0), bounded(ocps[0], 10.0)]
+    guess = _loop_controls(param)
+    guesses = np.stack([guess] * 6)
+    guesses[5, 3] = np.nan
+    r = controls.solve_direct_batch(ocps, param, guesses, lanes=4, progress=False)
+    assert list(r.status) == ["converged"] * 4 + ["infeasible", "non_finite_input"]
+    assert r.reasons[:4] == [""] * 4 and "control bounds" in r.reasons[4] and "NaN" in r.reasons[5]
+    assert r.counts() == {"converged": 4, "infeasible": 1, "non_finite_input": 1}
+    assert np.isnan(r.cost[5]) and np.isnan(r.params[5]).all() and r.results[5] is None
+    assert r.violation[:4].max() < 1e-8 and r.rounds >= r.iterations.max() + 1
+    for i, ocp in enumerate(ocps[:5]):
+        alone = controls.solve_direct_sqp(ocp, param, guess, progress=False)
+        assert alone.converged == (i < 4) and alone.iterations == r.iterations[i]
+        assert alone.message == r.results[i].message
+        if i < 4:
+            assert abs(alone.cost - r.cost[i]) <= 1e-12 * abs(alone.cost)
+            np.testing.assert_allclose(r.params[i], np.asarray(alone.params), rtol=0, atol=1e-8)
+            assert r.results[i].cost == r.cost[i]
+    assert abs(r.cost[0] - _loop_cost(cat, 0.5)) < 1e-9 * _loop_cost(cat, 0.5)
+    # a member's control is its parametrization's signal: re-simulated, it meets the target
+    _, J, psi = controls.rollout(ocps[1], r.results[1].control, rtol=1e-10, atol=1e-10)
+    assert abs(float(J) - r.cost[1]) < 1e-8 and np.abs(np.asarray(psi)).max() < 1e-7
+
+
+def test_direct_batch_refuses_members_of_other_structure_by_name():
+    """Another state size, another parametrization degree, a count of parametrizations
+    that does not match the problems, a guess of the wrong shape: named errors, before
+    anything is traced."""
+    cat = FallingCatKinematic()
+    chart = velocity_somersault_chart(cat, 0.6, -np.pi, T)
+    torque = torque_somersault(FallingCat(), 0.6, -np.pi, T)
+    param = controls.Chebyshev(10, T, 2)
+    with pytest.raises(controls.GridError, match="problem 1"):
+        controls.solve_direct_batch([chart, torque], param, progress=False)
+    with pytest.raises(controls.GridError, match="parametrization 1"):
+        controls.solve_direct_batch([chart, chart], [param, controls.Chebyshev(8, T, 2)], progress=False)
+    with pytest.raises(controls.ProblemError, match="3 parametrizations for 2 problems"):
+        controls.solve_direct_batch([chart, chart], [param] * 3, progress=False)
+    with pytest.raises(controls.ProblemError, match=r"shape \(22,\).*\(2, 22\)"):
+        controls.solve_direct_batch([chart, chart], param, np.zeros((3, 22)), progress=False)
