@@ -975,15 +975,59 @@ def _uses_lapack(exe) -> bool:
         return True
 
 
+@contextlib.contextmanager
+def _scipy_lapack_alone():
+    """While inside: SciPy's ``cython_blas`` and ``cython_lapack`` extension modules
+    (where jaxlib's LAPACK initialization takes its routines from) loaded by
+    themselves, so that the initialization does not import the ``scipy.linalg``
+    package around them. That package imports most of SciPy (0.4 s on the development
+    machine, 0.8 s under load), which the warm first answers of the scenes whose
+    programs solve linear systems waited for. On leaving, the two leave ``sys.modules``
+    again: a later ``import scipy.linalg.cython_lapack`` gets the same module (Cython
+    keeps one per process) and sets it on its package as usual. Nothing is done when
+    ``scipy.linalg`` is imported already or the modules are not where SciPy keeps them
+    (the initialization then imports them the usual way)."""
+    import importlib.util
+    import sys
+
+    added = []
+    try:
+        if "scipy.linalg" not in sys.modules:
+            import scipy
+
+            folder = Path(scipy.__file__).parent / "linalg"
+            for name in ("cython_blas", "cython_lapack"):  # (lapack's module uses blas's)
+                full = f"scipy.linalg.{name}"
+                files = sorted(folder.glob(f"{name}.*.so")) + sorted(folder.glob(f"{name}.*.pyd"))
+                if full in sys.modules or not files:
+                    continue
+                spec = importlib.util.spec_from_file_location(full, files[0])
+                module = importlib.util.module_from_spec(spec)
+                sys.modules[full] = module
+                added.append(full)
+                spec.loader.exec_module(module)
+    except Exception:  # noqa: BLE001 - the initialization imports them itself
+        for full in added:
+            sys.modules.pop(full, None)
+        added = []
+    try:
+        yield
+    finally:
+        for full in added:
+            sys.modules.pop(full, None)
+
+
 @functools.lru_cache(maxsize=1)
 def _initialize_lapack():
     """jaxlib's LAPACK kernels look their routines up when a program using them is
     first lowered; a loaded executable is never lowered, and calling its LAPACK
-    kernels uninitialized crashes the process. Initialize them as lowering does."""
+    kernels uninitialized crashes the process. Initialize them as lowering does (with
+    SciPy's LAPACK modules loaded by themselves: ``_scipy_lapack_alone``)."""
     try:
         from jax._src.lax import linalg
 
-        linalg.initialize_lapack()
+        with _scipy_lapack_alone():
+            linalg.initialize_lapack()
     except Exception:  # noqa: BLE001 - another jax: lower a small LAPACK call instead
         import jax.numpy as jnp
 

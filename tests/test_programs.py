@@ -162,6 +162,38 @@ def test_a_new_process_loads_the_solve_instead_of_tracing_it(tmp_path):
     assert len(set(first["steps"])) > 1  # members of different lengths
 
 
+_LAPACK_CHILD = """
+import json, sys
+import numpy as np, nhjax
+from nhjax import _programs
+from nhjax.scenes import BouncingBall
+ball = BouncingBall()
+tr = nhjax.simulate_impacts(ball, ball.initial_state(0.1), 1.0)
+imported = "scipy.linalg" in sys.modules
+import scipy.linalg.cython_lapack as lapack_module  # afterwards, imported the usual way
+import scipy.linalg
+print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), times=np.asarray(tr.impact_times).tolist(),
+                      scipy_linalg=imported, attribute=scipy.linalg.cython_lapack is lapack_module,
+                      stats=_programs.STATS)))
+"""
+
+
+def test_a_loaded_program_that_calls_lapack_runs_without_importing_scipy_linalg(tmp_path):
+    """The impact solve's program calls LAPACK (its projections solve linear systems).
+    A second process loads it and initializes jaxlib's LAPACK kernels from SciPy's
+    cython_blas / cython_lapack modules alone (_programs._preload_scipy_lapack), not
+    through the scipy.linalg package: it gives the first process's results bit for bit
+    and has not imported scipy.linalg; an import of SciPy's module afterwards is the
+    usual one."""
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    runs = [json.loads(subprocess.run([sys.executable, "-c", _LAPACK_CHILD], capture_output=True, text=True,
+                                      env=env, check=True).stdout.strip().splitlines()[-1]) for _ in range(2)]
+    first, second = runs
+    assert second["stats"]["executables"] >= 1 and second["stats"]["stored"] == 0
+    assert not second["scipy_linalg"] and second["attribute"]
+    assert second["xs"] == first["xs"] and second["times"] == first["times"] and len(first["times"]) >= 2
+
+
 @pytest.mark.slow
 def test_a_new_process_compiles_again_what_lost_its_executable(tmp_path):
     """Executables gone (an older cache, or evicted) while the traces stay: the next
