@@ -191,6 +191,17 @@ def call():
     ocps = [velocity_somersault_chart(cat, th, h - 0.2, T) for th, h in zip(bends, hol)]
     p0, nu = zip(*(fixed_theta_costates(cat, th, T) for th in bends))
     return controls.solve_pontryagin_batch(ocps, np.stack(p0), np.stack(nu), progress=False).cost""",
+    "OC: 64 chart somersaults, solve_direct_batch, Chebyshev(10)": """
+import jax.numpy as jnp, controls
+from controls.tasks import velocity_somersault_chart
+cat, T = S.FallingCatKinematic(), 2.0
+bends = np.linspace(0.5, 0.8, 64)
+def call():
+    hol = -2 * np.pi * cat.lam * np.cos(bends) / (np.sin(bends) ** 2 + cat.lam * np.cos(bends) ** 2)
+    ocps = [velocity_somersault_chart(cat, th, h - 0.2, T) for th, h in zip(bends, hol)]
+    param = controls.Chebyshev(10, T, 2)
+    guess = param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T]))
+    return controls.solve_direct_batch(ocps, param, guess, progress=False).cost""",
     "OC: sphere steering, solve_direct_newton, Chebyshev(6)": """
 import controls
 from controls.tasks import linear_guess, sphere_steering
