@@ -576,7 +576,10 @@ def solve_pontryagin(
         bar.update(iterations=int(steps), cost=float(cost), violation=f"{viol:.1e}", residual=f"{res:.1e}")
     finally:
         bar.finish(converged)
-    msg = "converged" if converged else f"not converged: shooting residual {res:.2e}"
+    msg = "converged" if converged else (
+        f"not converged: shooting residual {res:.2e} after {int(steps)} steps; from a poor start try "
+        + ("solver='lm' (damped steps), " if solver == "newton" else "") + "a closer p0_guess, or continuation "
+        "from an easier problem")
     return IndirectResult(
         p0=np.asarray(p0), nu=np.asarray(nu), cost=float(cost), violation=viol, residual=res,
         converged=converged, message=msg, trajectory=traj, controls=np.asarray(us),

@@ -257,6 +257,9 @@ def test_the_returned_extremal_is_the_one_the_shooting_residual_comes_from():
             # the quick program's Newton solve ends at the default one's extremal
             np.testing.assert_allclose(r.p0, ref.p0, rtol=1e-9)
             np.testing.assert_allclose(r.cost, ref.cost, rtol=1e-11)
+        if not r.converged:  # a stopped solve says where it stopped and what to try
+            assert f"residual {r.residual:.2e} after {r.iterations} steps" in r.message
+            assert "closer p0_guess" in r.message and "solver='lm'" not in r.message
         if budget == 100 and solver == "lm":
             # the damped iteration with the full budget ends at the same extremal
             assert r.converged
