@@ -131,6 +131,30 @@ def test_shooting_jacobian_at_rest_is_the_exact_one(kind):
     np.testing.assert_allclose(D[2], dv, rtol=1e-12, atol=1e-15)
 
 
+def test_shooting_jacobian_at_rest_resolves_a_smooth_parametrization():
+    """The same at zero inputs with Chebyshev(12): a smooth signal gets steps of at most
+    T / 13 (controls.newton._step_controller), so the forward sensitivities integrate
+    the basis polynomials T_k(2t/T - 1) to 1e-3 of the exact integrals (Gauss-Legendre,
+    exact for these degrees). Left to the step control, which sees no error at rest,
+    the solve took a few long steps and its Jacobian was off by 1.2 (the thruster
+    chain's failed steering; tests/test_planar_chain.py has the whole task, in
+    ``make test-all``)."""
+    from controls import newton as nt
+
+    T, n = 1.0, 12
+    param = controls.Chebyshev(n, T, 1)
+    sh = nt._Shooting(lq_problem(T), param, jnp.asarray(1e-10), jnp.asarray(1e-10))
+    y, D = (np.asarray(a) for a in nt._values_and_jacobian(sh, np.zeros(param.size)))
+    s, w = np.polynomial.legendre.leggauss(20)  # t = T (s + 1) / 2
+    basis = np.polynomial.chebyshev.chebvander(s, n)
+    dv = (T / 2) * w @ basis  # int_0^T T_k dt
+    dq = (T**2 / 4) * (w * (1 - s)) @ basis  # int_0^T (T - t) T_k dt
+    assert np.abs(dq).max() > 0.4 and np.abs(dv).max() > 0.9
+    np.testing.assert_allclose(D[0], 0.0, atol=1e-15)
+    np.testing.assert_allclose(D[1], dq, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(D[2], dv, rtol=0, atol=1e-3)
+
+
 def test_bad_problems_are_named():
     with pytest.raises(controls.ProblemError, match="scalar"):
         controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=lambda t, x, u: u)

@@ -233,6 +233,7 @@ def test_reorientation_direct_and_pontryagin_agree():
     np.testing.assert_allclose(ind.trajectory.xs[-1, 0], turn, atol=1e-9)
 
 
+@pytest.mark.slow  # (the step control it needs: test_controls.py's Jacobian-at-rest tests; make test-all)
 def test_thruster_steering_reaches_the_target_pose_at_rest():
     """controls.tasks.chain_steering (thrusts and joint torques, rest to rest at a pose) by
     both direct methods from zero inputs (where the chain stays at rest: the shooting
