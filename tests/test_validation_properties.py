@@ -278,6 +278,8 @@ PROBES = {
     "controls.prepare_pmp_residual": lambda: controls.prepare_pmp_residual(_ocp(), "not a control"),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
     "controls.solve_pontryagin_batch": lambda: controls.solve_pontryagin_batch([_ocp(), _ocp()], rtol=-1.0),
+    "controls.solve_direct_batch": lambda: controls.solve_direct_batch(
+        [_ocp(), _ocp()], controls.PiecewiseLinear(4, 1.0, 1), lanes=0),
     "controls.MPC": lambda: controls.MPC(_ocp(), -0.1, 10),
     "controls.closed_loop": lambda: controls.closed_loop(controls.MPC(_ocp(), 0.1, 10), _ocp().system,
                                                          jnp.array([np.nan, 0.0]), 3),
@@ -326,6 +328,7 @@ EXEMPT = {
     "nhjax.scenes.REGISTRY": "dict of the scene classes (each probed below)",
     "controls.DirectResult": "result container", "controls.IndirectResult": "result container",
     "controls.BatchResult": "result container returned by solve_pontryagin_batch",
+    "controls.DirectBatchResult": "result container returned by solve_direct_batch",
     "controls.HamiltonianSystem": "built by solve_pontryagin from a checked OCP",
     "controls.ClosedLoop": "result container returned by closed_loop",
     "controls.MPCStatus": "result container (per-period statuses of an MPC)",
