@@ -22,13 +22,16 @@ intervals),
 
     ds_0 = y - s_0,   ds_{k+1} = A_k ds_k + B_k du_k + c_k,   c_k = F_k - s_{k+1},
 
-eliminates the state steps (condensing, ds_k = G_k du + e_k, one ``lax.scan``),
-and solves the dense quadratic program in the Nm input steps
+and solves the quadratic program in the Nm input steps (the state steps eliminated,
+ds_k = G_k du + e_k: condensing)
 
     minimize  g.du + du.H.du / 2   s.t.  C_psi ds_N = -psi,  lo <= du <= hi
 
 by a primal-dual interior-point method with Mehrotra's predictor-corrector
-(Nocedal & Wright, Numerical Optimization, 2nd ed., Algorithm 16.4; ``box_qp``).
+(Nocedal & Wright, Numerical Optimization, 2nd ed., Algorithm 16.4), its Newton
+systems either dense (``qp="dense"``: H formed by one ``lax.scan``, ``box_qp``) or
+stage-wise by the Riccati recursion on the multiple-shooting form, without forming H
+(``qp="riccati"``, ``controls._qp.stage_qp``; Rao, Wright & Rawlings 1998).
 The Hessian model H is, per interval, the second derivative of the running cost
 at the interval's start (Gauss–Newton: h d^2 L / d(x, u)^2; ``hessian=
 "gauss-newton"``) or of the interval's Lagrangian J_k + lambda_{k+1} . F_k
@@ -57,7 +60,7 @@ Modes:
   iterations;
 * ``mode="rti"``: the real-time iteration (Diehl, Bock & Schlöder 2005): one full
   SQP step per period from the shifted plan. Bounded work: one linearization,
-  one condensing, one QP of at most ``qp_iter`` interior-point iterations.
+  one QP of at most ``qp_iter`` interior-point iterations.
 
 Terminal conditions (``terminal``): ``"constraint"`` keeps the OCP's
 ``terminal_constraints`` as equalities of every horizon problem; ``"penalty"``
@@ -80,14 +83,21 @@ decrease, or (``mode="converged"``) it does not converge within ``max_iter``.
 A failed solve is never applied: the controller keeps the previous plan,
 shifted, and applies its next segment; ``fallback`` says so.
 
+Model errors (``disturbance_gain``): offset-free MPC (Pannocchia & Rawlings 2003)
+adds a constant disturbance d to the model's vector field over the horizon and
+updates it every period from the measurement's departure from the model's
+prediction over the last period (``MPC.step``); without it a model error is
+corrected only after it has shown in the measured state.
+
 ``closed_loop`` runs the controller against a plant (any nhjax system whose
 state has the model's layout, possibly other parameters) as one compiled
-``lax.scan`` over periods; ``closed_loop_batch`` vmaps that program over members
-(starts, disturbances, plant parameters).
+``lax.scan`` over periods; ``closed_loop_batch`` vmaps that program over groups of
+members (starts, disturbances, plant parameters), the groups one after the other.
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from typing import Any
@@ -105,6 +115,7 @@ from nhjax.mechanics import AbstractSystem
 
 from nhjax.errors import NhjaxError
 
+from ._qp import box_qp, stage_qp
 from .problem import OCP, ProblemError, compiled, host_array
 
 __all__ = [
@@ -173,13 +184,20 @@ class Plan(eqx.Module):
     """The controller's memory between periods: the horizon's states s (N+1, n),
     inputs u (N, m), multipliers lam (N+1, n) of the shooting equations and nu of
     the terminal constraints (for the exact Hessian), and ``valid`` (False until a
-    solve succeeded: a fallback from an invalid plan applies its inputs, the guess)."""
+    solve succeeded: a fallback from an invalid plan applies its inputs, the guess);
+    the disturbance observer's memory (``MPC(disturbance_gain=...)``): the estimate
+    ``dist`` (n,) [state units / s], the last measurement ``y_prev`` (n,), the inputs
+    applied since ``u_prev`` (p, m), and ``has_prev`` (False before the first period)."""
 
     s: jax.Array
     u: jax.Array
     lam: jax.Array
     nu: jax.Array
     valid: jax.Array
+    dist: jax.Array
+    y_prev: jax.Array
+    u_prev: jax.Array
+    has_prev: jax.Array
 
 
 class ClosedLoop(eqx.Module):
@@ -201,113 +219,6 @@ class ClosedLoop(eqx.Module):
     measurements: jax.Array
     status: MPCStatus
     cost: jax.Array
-
-
-# ------------------------------------------------------------------ the QP
-def box_qp(H, g, A, b, lo, hi, *, max_iter=50, tol=1e-11):
-    """Solve  min g.d + d.H.d / 2  s.t.  A d = b,  lo <= d <= hi  (H symmetric positive
-    definite; lo, hi may hold -inf / inf; lo < hi) by a primal-dual interior-point
-    iteration with Mehrotra's predictor-corrector (N&W Algorithm 16.4), traceable
-    (a ``lax.while_loop`` of at most ``max_iter`` iterations, each one LU factorization
-    of the (n + m_eq) KKT matrix and two solves). The interior point stays off an
-    active bound by about mu / z; a last KKT solve with the bounds whose multiplier
-    exceeds their slack held exactly (and A d = b without the iteration's
-    regularization) replaces it when that point is feasible and its bound multipliers
-    have the right signs. A must have full row rank.
-
-    Returns (d, y, ok, iterations): the step, the multipliers of A d = b (H d + g -
-    A^T y - z_lo + z_hi = 0 with the bound multipliers z >= 0), and whether the scaled
-    residuals and the complementarity reached ``tol`` (False for an infeasible QP)."""
-    n, me = g.shape[0], b.shape[0]
-    L, U = jnp.isfinite(lo), jnp.isfinite(hi)
-    any_bound = jnp.any(L) | jnp.any(U)
-    n_bounds = jnp.maximum(jnp.sum(L) + jnp.sum(U), 1)
-    # an interior start: 0 pulled inside the box by a tenth of its width (at most 1)
-    width = jnp.where(L & U, hi - lo, 1.0)
-    margin = 0.1 * jnp.minimum(width, 1.0)
-    d0 = jnp.clip(jnp.zeros(n), jnp.where(L, lo + margin, -jnp.inf), jnp.where(U, hi - margin, jnp.inf))
-    zl0, zu0 = jnp.where(L, 1.0, 0.0), jnp.where(U, 1.0, 0.0)
-    gscale = 1.0 + jnp.max(jnp.abs(g))
-    bscale = 1.0 + (jnp.max(jnp.abs(b)) if me else 0.0)
-    reg = 1e-13 * (1.0 + jnp.max(jnp.abs(jnp.diag(H))))
-
-    def parts(d, y, zl, zu):
-        sl = jnp.where(L, d - jnp.where(L, lo, 0.0), 1.0)
-        su = jnp.where(U, jnp.where(U, hi, 0.0) - d, 1.0)
-        rd = H @ d + g - A.T @ y - zl + zu
-        re = A @ d - b
-        mu = (jnp.sum(jnp.where(L, sl * zl, 0.0)) + jnp.sum(jnp.where(U, su * zu, 0.0))) / n_bounds
-        return sl, su, rd, re, mu
-
-    def error(d, y, zl, zu):
-        _, _, rd, re, mu = parts(d, y, zl, zu)
-        err = jnp.maximum(jnp.max(jnp.abs(rd)) / gscale, mu)
-        return jnp.maximum(err, jnp.max(jnp.abs(re)) / bscale) if me else err
-
-    def step_length(v, dv, mask):
-        ratio = jnp.where(mask & (dv < 0), -v / jnp.where(dv < 0, dv, -1.0), jnp.inf)
-        return jnp.minimum(1.0, 0.995 * jnp.min(ratio, initial=jnp.inf))
-
-    def body(carry):
-        d, y, zl, zu, k, _ = carry
-        sl, su, rd, re, mu = parts(d, y, zl, zu)
-        Sig = jnp.where(L, zl / sl, 0.0) + jnp.where(U, zu / su, 0.0)
-        K = jnp.block([[H + jnp.diag(Sig), -A.T], [A, -reg * jnp.eye(me)]])
-        lu = jax.scipy.linalg.lu_factor(K)
-
-        def direction(rcl, rcu):
-            rhs = jnp.concatenate([-rd + jnp.where(L, rcl / sl, 0.0) - jnp.where(U, rcu / su, 0.0), -re])
-            sol = jax.scipy.linalg.lu_solve(lu, rhs)
-            dd, dy = sol[:n], sol[n:]
-            dzl = jnp.where(L, (rcl - zl * dd) / sl, 0.0)
-            dzu = jnp.where(U, (rcu + zu * dd) / su, 0.0)
-            return dd, dy, dzl, dzu
-
-        def length(dd, dzl, dzu):
-            return jnp.minimum(jnp.minimum(step_length(sl, dd, L), step_length(su, -dd, U)),
-                               jnp.minimum(step_length(zl, dzl, L), step_length(zu, dzu, U)))
-
-        # predictor (affine scaling), then the corrector with centring sigma = (mu_aff / mu)^3
-        dd, dy, dzl, dzu = direction(-sl * zl, -su * zu)
-        a = length(dd, dzl, dzu)
-        mu_aff = (jnp.sum(jnp.where(L, (sl + a * dd) * (zl + a * dzl), 0.0))
-                  + jnp.sum(jnp.where(U, (su - a * dd) * (zu + a * dzu), 0.0))) / n_bounds
-        sigma = jnp.where(any_bound, (mu_aff / jnp.where(mu > 0, mu, 1.0)) ** 3, 0.0)
-        dd2, dy2, dzl2, dzu2 = direction(sigma * mu - sl * zl - dd * dzl, sigma * mu - su * zu + dd * dzu)
-        a = length(dd2, dzl2, dzu2)
-        d, y, zl, zu = d + a * dd2, y + a * dy2, zl + a * dzl2, zu + a * dzu2
-        return d, y, zl, zu, k + 1, error(d, y, zl, zu)
-
-    def cond(carry):
-        *_, k, err = carry
-        return (k < max_iter) & (err > tol)  # NaN stops the loop too (NaN > tol is False)
-
-    y0 = jnp.zeros(me)
-    d, y, zl, zu, k, err = jax.lax.while_loop(cond, body, (d0, y0, zl0, zu0, 0, error(d0, y0, zl0, zu0)))
-    ok = (err <= tol) & jnp.all(jnp.isfinite(d))
-
-    # polish: the interior point stays off an active bound by ~mu / z; one KKT solve with
-    # the bounds whose multiplier exceeds their slack held exactly puts it on the bound
-    # (kept when it is feasible and its bound multipliers have the right signs); without
-    # the IPM's regularization of the KKT matrix, whose -reg y would be left in A d = b
-    sl, su, *_ = parts(d, y, zl, zu)
-    act_l, act_u = L & (zl > sl), U & (zu > su) & ~(L & (zl > sl))
-    fixed = act_l | act_u
-    bound = jnp.where(act_l, jnp.where(L, lo, 0.0), jnp.where(act_u, jnp.where(U, hi, 0.0), 0.0))
-    Hf = jnp.where(fixed[:, None], jnp.eye(n), H)
-    Af = jnp.where(fixed[:, None], 0.0, -A.T)
-    K = jnp.block([[Hf, Af], [A, jnp.zeros((me, me))]])
-    sol = jnp.linalg.solve(K, jnp.concatenate([jnp.where(fixed, bound, -g), b]))
-    dp, yp = sol[:n], sol[n:]
-    z = H @ dp + g - A.T @ yp  # z_lo - z_hi on the fixed components, 0 on the free ones
-    good = (jnp.all(jnp.isfinite(sol))
-            & jnp.all(jnp.where(L & ~fixed, dp >= lo - 1e-14 * (1 + jnp.abs(lo)), True))
-            & jnp.all(jnp.where(U & ~fixed, dp <= hi + 1e-14 * (1 + jnp.abs(hi)), True))
-            & jnp.all(jnp.where(act_l, z >= -tol * gscale, True)) & jnp.all(jnp.where(act_u, z <= tol * gscale, True)))
-    if me:
-        good = good & (jnp.max(jnp.abs(A @ dp - b)) <= tol * bscale)
-    use = ok & good
-    return jnp.where(use, dp, d), jnp.where(use, yp, y), ok, k
 
 
 # ------------------------------------------------------------------ the controller
@@ -339,7 +250,26 @@ class MPC(eqx.Module):
     max_iter, tol : the converged mode's iteration budget and tolerance (relative step
         and absolute violation).
     qp_iter, qp_tol : the interior-point QP's budget and tolerance.
+    qp : how the QP's Newton systems are solved: "dense" (condensed, ``box_qp``: one LU
+        of the Nm-dimensional KKT matrix per iteration), "riccati" (stage-wise,
+        ``stage_qp``: the Riccati recursion over the N intervals, no condensing), or
+        "auto" (default): for one loop (``closed_loop``, ``solve``, ``step``) the one
+        with fewer flops per Newton system (``_qp_kind``: the Riccati's O(N (n + m)^3)
+        against the LU's O((N m)^3): "riccati" for long horizons of small systems),
+        and "riccati" in ``closed_loop_batch``, whose small operations stay inside
+        loops that XLA compiles as one function and vectorizes over a group of members,
+        where dense LU factorizations are one LAPACK call per member. Both give the
+        same step up to rounding.
     regularization : floor of each Hessian block's eigenvalues.
+    disturbance_gain : a number or n numbers in [0, 1] (default 0: off). Offset-free
+        MPC (Pannocchia & Rawlings, AIChE J. 49, 2003): the model's vector field gets a
+        constant additive disturbance d [state units / s], x' = f(t, x, u) + d, over
+        the whole horizon; each period the measurement y is compared with the model's
+        prediction y_hat from the previous measurement under the inputs applied (with
+        the current d) and d_i <- d_i + gain_i (y_i - y_hat_i) / period. Gain 1 on a
+        component: the d that explains the last period's prediction error to first
+        order. A model error (other masses or inertias than the plant's) is then
+        corrected in the prediction instead of only after it has shown in the state.
     """
 
     ocp: OCP
@@ -357,10 +287,14 @@ class MPC(eqx.Module):
     qp_iter: int = eqx.field(static=True)
     qp_tol: jax.Array
     regularization: jax.Array
+    qp: str = eqx.field(static=True)
+    disturbance_gain: jax.Array
+    observer: bool = eqx.field(static=True)
+    dist: jax.Array  # the disturbance used by the model's maps (set per period from Plan.dist)
 
     def __init__(self, ocp, period, intervals, *, mode="rti", horizon="receding", substeps=1, terminal=None,
                  terminal_weight=1e4, hessian="gauss-newton", max_iter=50, tol=1e-9, qp_iter=60, qp_tol=1e-12,
-                 regularization=1e-9):
+                 regularization=1e-9, qp="auto", disturbance_gain=0.0):
         owner = "MPC"
         if not isinstance(ocp, OCP):
             raise MPCError(f"{owner}: ocp must be a controls.OCP (the horizon problem), got {type(ocp).__name__}")
@@ -368,6 +302,7 @@ class MPC(eqx.Module):
             V.choice("mode", mode, ("rti", "converged"), owner=owner)
             V.choice("horizon", horizon, ("receding", "shrinking"), owner=owner)
             V.choice("hessian", hessian, ("gauss-newton", "exact"), owner=owner)
+            V.choice("qp", qp, ("auto", "dense", "riccati"), owner=owner)
             N = V.integer("intervals", intervals, minimum=1, owner=owner)
             substeps = V.integer("substeps", substeps, minimum=1, owner=owner)
             max_iter = V.integer("max_iter", max_iter, minimum=1, owner=owner)
@@ -406,6 +341,19 @@ class MPC(eqx.Module):
         self.hessian, self.max_iter, self.qp_iter = hessian, max_iter, qp_iter
         self.tol, self.qp_tol = host_array(tol), host_array(qp_tol)
         self.regularization = host_array(regularization)
+        self.qp = qp
+        n = int(np.shape(ocp.x0)[0])
+        try:
+            gain = np.broadcast_to(np.asarray(disturbance_gain, dtype=float), (n,)).copy()
+        except (TypeError, ValueError):
+            raise MPCError(f"{owner}: disturbance_gain must be a number or {n} numbers in [0, 1] (one per state "
+                           f"component), got {disturbance_gain!r}") from None
+        if not (np.all(np.isfinite(gain)) and np.all(gain >= 0) and np.all(gain <= 1)):
+            raise MPCError(f"{owner}: disturbance_gain must lie in [0, 1] (0: no observer on that component), "
+                           f"got {gain.tolist()}")
+        self.disturbance_gain = host_array(gain)
+        self.observer = bool(np.any(gain > 0))
+        self.dist = host_array(np.zeros(n))
 
     # -------------------------------------------------------------- structure
     @property
@@ -423,6 +371,15 @@ class MPC(eqx.Module):
             return jnp.full(m, -jnp.inf), jnp.full(m, jnp.inf)
         return self.ocp.u_lower, self.ocp.u_upper
 
+    def _qp_kind(self):
+        """The QP solver of one loop: ``qp``, or for "auto" the one with fewer flops per
+        Newton system: the dense LU of the condensed KKT matrix, ~(2/3) (N m)^3, or the
+        Riccati sweep, ~4 N (n + m)^3 (products and inverses of its stage blocks)."""
+        if self.qp != "auto":
+            return self.qp
+        N, n, m = self.intervals, self.ocp.x0.shape[0], self.ocp.system.control_dim
+        return "riccati" if 4 * N * (n + m) ** 3 < (2 / 3) * (N * m + self.n_constraints) ** 3 else "dense"
+
     # -------------------------------------------------------------- model pieces
     def _interval(self, t, h, x, u):
         """RK4 over one interval: (x at its end, int L dt over it)."""
@@ -430,7 +387,7 @@ class MPC(eqx.Module):
         dt = h / self.substeps
 
         def f(tt, x):
-            return sysm.vector_field(tt, x, u), L(tt, x, u)
+            return sysm.vector_field(tt, x, u) + self.dist, L(tt, x, u)
 
         J = jnp.zeros(())
         for i in range(self.substeps):
@@ -526,41 +483,48 @@ class MPC(eqx.Module):
         psi = self._terminal_parts(s[-1])[1]
         C = jax.jacfwd(lambda x: self._terminal_parts(x)[1])(s[-1]).reshape(psi.shape[0], n)
 
-        # condensing: ds_k = G_k du + e_k
-        def cond_step(carry, k):
-            G, e = carry
-            Gn = (A[k] @ G).reshape(n, N, m).at[:, k, :].add(B[k]).reshape(n, N * m)
-            en = A[k] @ e + c[k]
-            return (Gn, en), (Gn, en)
+        lo = jnp.where(free, -jnp.inf, lo_box[None] - u)
+        hi = jnp.where(free, jnp.inf, hi_box[None] - u)
+        if self._qp_kind() == "riccati":
+            # the stage-wise QP, each Newton system by the Riccati recursion (no condensing)
+            du_k, ds, yq, qp_ok, _ = stage_qp(Q, q, A, B, c, e0, P, gphi, C, -psi, lo, hi, max_iter=self.qp_iter,
+                                              tol=self.qp_tol)
+            du = du_k.reshape(-1)
+        else:
+            # condensing: ds_k = G_k du + e_k, then the dense QP in the Nm input steps
+            def cond_step(carry, k):
+                G, e = carry
+                Gn = (A[k] @ G).reshape(n, N, m).at[:, k, :].add(B[k]).reshape(n, N * m)
+                en = A[k] @ e + c[k]
+                return (Gn, en), (Gn, en)
 
-        G0 = jnp.zeros((n, N * m))
-        _, (Gs, es) = jax.lax.scan(cond_step, (G0, e0), jnp.arange(N))
-        G = jnp.concatenate([G0[None], Gs])            # (N+1, n, Nm)
-        e = jnp.concatenate([e0[None], es])            # (N+1, n)
-        Gk = G[:-1]
-        Hss = jnp.einsum("kia,kij,kjb->ab", Gk, Qss, Gk)
-        X = jnp.einsum("kia,kij->akj", Gk, Qsu).reshape(N * m, N * m)  # G_k^T Qsu_k into block column k
-        Huu = jnp.einsum("kl,kij->kilj", jnp.eye(N), Quu).reshape(N * m, N * m)
-        GN = G[-1]
-        H = Hss + X + X.T + Huu + GN.T @ P @ GN
-        H = 0.5 * (H + H.T)
-        gs = q[:, :n] + jnp.einsum("kij,kj->ki", Qss, e[:-1])           # (N, n)
-        gu = q[:, n:] + jnp.einsum("kij,ki->kj", Qsu, e[:-1])           # (N, m)
-        g = jnp.einsum("kia,ki->a", Gk, gs) + gu.reshape(-1) + GN.T @ (gphi + P @ e[-1])
-        Aeq = C @ GN
-        beq = -(psi + C @ e[-1])
-        lo = jnp.where(free, -jnp.inf, lo_box[None] - u).reshape(-1)
-        hi = jnp.where(free, jnp.inf, hi_box[None] - u).reshape(-1)
-        du, yq, qp_ok, _ = box_qp(H, g, Aeq, beq, lo, hi, max_iter=self.qp_iter, tol=self.qp_tol)
-        du_k = du.reshape(N, m)
-        ds = jnp.einsum("kia,a->ki", G, du) + e                          # (N+1, n)
+            G0 = jnp.zeros((n, N * m))
+            _, (Gs, es) = jax.lax.scan(cond_step, (G0, e0), jnp.arange(N))
+            G = jnp.concatenate([G0[None], Gs])            # (N+1, n, Nm)
+            e = jnp.concatenate([e0[None], es])            # (N+1, n)
+            Gk = G[:-1]
+            Hss = jnp.einsum("kia,kij,kjb->ab", Gk, Qss, Gk)
+            X = jnp.einsum("kia,kij->akj", Gk, Qsu).reshape(N * m, N * m)  # G_k^T Qsu_k into block column k
+            Huu = jnp.einsum("kl,kij->kilj", jnp.eye(N), Quu).reshape(N * m, N * m)
+            GN = G[-1]
+            H = Hss + X + X.T + Huu + GN.T @ P @ GN
+            H = 0.5 * (H + H.T)
+            gs = q[:, :n] + jnp.einsum("kij,kj->ki", Qss, e[:-1])           # (N, n)
+            gu = q[:, n:] + jnp.einsum("kij,ki->kj", Qsu, e[:-1])           # (N, m)
+            g = jnp.einsum("kia,ki->a", Gk, gs) + gu.reshape(-1) + GN.T @ (gphi + P @ e[-1])
+            Aeq = C @ GN
+            beq = -(psi + C @ e[-1])
+            du, yq, qp_ok, _ = box_qp(H, g, Aeq, beq, lo.reshape(-1), hi.reshape(-1), max_iter=self.qp_iter,
+                                      tol=self.qp_tol)
+            du_k = du.reshape(N, m)
+            ds = jnp.einsum("kia,a->ki", G, du) + e                          # (N+1, n)
 
         # multipliers by the adjoint recursion of the QP's stationarity
         nu_new = -yq
         lamN = gphi + P @ ds[-1] + C.T @ nu_new
 
         def back(lam_next, k):
-            lk = gs[k] - jnp.einsum("ij,j->i", Qss[k], e[k]) + Qss[k] @ ds[k] + Qsu[k] @ du_k[k] + A[k].T @ lam_next
+            lk = q[k, :n] + Qss[k] @ ds[k] + Qsu[k] @ du_k[k] + A[k].T @ lam_next
             return lk, lk
 
         _, lams = jax.lax.scan(back, lamN, jnp.arange(N), reverse=True)
@@ -595,8 +559,8 @@ class MPC(eqx.Module):
             a = 1.0
             ph, s1, cost1, viol1 = trial(1.0)
             accepted = jnp.isfinite(ph)
-        new = Plan(s1, u + a * du_k, lam + a * (lam_new - lam),
-                   nu + a * (nu_new - nu) if nu.shape[0] else nu, jnp.asarray(True))
+        new = dataclasses.replace(plan, s=s1, u=u + a * du_k, lam=lam + a * (lam_new - lam),
+                                  nu=nu + a * (nu_new - nu) if nu.shape[0] else nu, valid=jnp.asarray(True))
         step = jnp.max(jnp.abs(du)) / (1 + jnp.max(jnp.abs(u)))
         return new, qp_ok, accepted, step, viol1, cost1
 
@@ -621,7 +585,7 @@ class MPC(eqx.Module):
         # the plan's inputs rolled out from the measurement: every iterate is feasible for
         # the shooting equations (they are linearized, condensed, and restored by the rollout)
         s0, cost0, _ = self._rollout(y, plan.u, ts, hs)
-        start = Plan(s0, plan.u, plan.lam, plan.nu, plan.valid)
+        start = dataclasses.replace(plan, s=s0)
         if self.mode == "rti":
             new, qp_ok, accepted, step, viol, cost = self._sqp_step(start, cost0, ts, hs, lo_box, hi_box, free, y,
                                                                     False)
@@ -667,21 +631,44 @@ class MPC(eqx.Module):
             return x1, x1
 
         _, s_tail = jax.lax.scan(ext, plan.s[-1], jnp.arange(p))
-        return Plan(jnp.concatenate([plan.s[p:], s_tail]), jnp.concatenate([plan.u[p:], u_tail]),
-                    jnp.concatenate([plan.lam[p:], jnp.repeat(plan.lam[-1:], p, axis=0)]), plan.nu, plan.valid)
+        return dataclasses.replace(plan, s=jnp.concatenate([plan.s[p:], s_tail]),
+                                   u=jnp.concatenate([plan.u[p:], u_tail]),
+                                   lam=jnp.concatenate([plan.lam[p:], jnp.repeat(plan.lam[-1:], p, axis=0)]))
 
     def step(self, plan: Plan, y, t, period_index=0):
         """One control period (traceable): solve from the measurement ``y`` at ``t``,
         keep the plan (or fall back to the previous one), return (u_segment (p, m), the
         plan for the next period (shifted), MPCStatus). ``u_segment`` holds the inputs
-        of the p intervals of this period."""
-        kept, status = self.solve(plan, y, t, period_index)
+        of the p intervals of this period. With the disturbance observer on, the estimate
+        is updated from ``y`` first (``disturbance_gain``) and the horizon solved with it."""
+        mpc = self
+        if self.observer:
+            plan = dataclasses.replace(plan, dist=self._observe(plan, y, t))
+            mpc = eqx.tree_at(lambda m: m.dist, self, plan.dist)
+        kept, status = mpc.solve(plan, y, t, period_index)
         if self.horizon == "shrinking":
             u_seg = jax.lax.dynamic_slice_in_dim(kept.u, period_index * self.steps_per_period,
                                                  self.steps_per_period)
         else:
             u_seg = kept.u[: self.steps_per_period]
-        return u_seg, self.shift(kept, t), status
+        kept = dataclasses.replace(kept, dist=plan.dist, y_prev=y, u_prev=u_seg, has_prev=jnp.asarray(True))
+        return u_seg, mpc.shift(kept, t), status
+
+    def _observe(self, plan, y, t):
+        """The disturbance estimate after the measurement ``y`` at ``t``: the model (with
+        the current estimate) from ``plan.y_prev`` under ``plan.u_prev`` over the last
+        period gives y_hat; d + gain (y - y_hat) / period (d itself before the first
+        period, when there is no previous measurement)."""
+        mpc = eqx.tree_at(lambda m: m.dist, self, plan.dist)
+        t_prev = t - self.period
+
+        def roll(x, k):
+            x1, _ = mpc._interval(t_prev + k * self.h, self.h, x, plan.u_prev[k])
+            return x1, None
+
+        y_hat, _ = jax.lax.scan(roll, plan.y_prev, jnp.arange(self.steps_per_period))
+        d = plan.dist + self.disturbance_gain * (y - y_hat) / self.period
+        return jnp.where(plan.has_prev, d, plan.dist)
 
     def init(self, x0=None, u_guess=None, t0=0.0) -> Plan:
         """A first plan: the model's RK4 rollout of ``u_guess`` (N, m) (default zeros, or
@@ -697,6 +684,13 @@ class MPC(eqx.Module):
         return Plan(*_init_program(self, jnp.asarray(x0), jnp.asarray(u_guess), host_array(t0)))
 
 
+def _with_qp(mpc, qp):
+    """``mpc`` with its QP solver set to ``qp`` (a copy; ``qp`` is a static field)."""
+    new = copy.copy(mpc)
+    object.__setattr__(new, "qp", qp)
+    return new
+
+
 def _init_plan(mpc, x0, u, t0):
     ts, hs = mpc._grid(t0, jnp.ones(mpc.intervals))
 
@@ -706,7 +700,9 @@ def _init_plan(mpc, x0, u, t0):
 
     _, xs = jax.lax.scan(roll, x0, jnp.arange(mpc.intervals))
     s = jnp.concatenate([x0[None], xs])
-    return Plan(s, u, jnp.zeros_like(s), jnp.zeros((mpc.n_constraints,)), jnp.asarray(False))
+    n, m = x0.shape[0], u.shape[1]
+    return Plan(s, u, jnp.zeros_like(s), jnp.zeros((mpc.n_constraints,)), jnp.asarray(False), jnp.zeros(n),
+                jnp.zeros(n), jnp.zeros((mpc.steps_per_period, m)), jnp.asarray(False))
 
 
 @compiled(quick=True)
@@ -911,13 +907,34 @@ def _draws_program(mpc, key_data, periods, plant_substeps, force_sd, meas_sd):
 
 
 @compiled(errors="off")
-def _batch_program(mpc, plant, plant_axis, X, u0, t0, key_data, push_t, push_dx, fsd, msd, periods, plant_substeps):
+def _batch_program(mpc, plant, plant_axis, X, u0, t0, key_data, push_t, push_dx, fsd, msd, periods, plant_substeps,
+                   group):
     def member(pl, x0, kd, pt, pdx):
         plan = _init_plan(mpc, x0, u0, t0)
         return _loop(mpc, pl, x0, plan, t0, jax.random.wrap_key_data(kd), pt, pdx, fsd, msd, periods,
                      plant_substeps)
 
-    return eqx.filter_vmap(member, in_axes=(plant_axis, 0, 0, 0, 0))(plant, X, key_data, push_t, push_dx)
+    # groups of ``group`` members vmapped together, the groups one after the other
+    # (lax.map): the loops of a small group stay small enough for XLA to compile each as
+    # one function (nhjax._xla_flags), where one vmap over all members runs them kernel by
+    # kernel with every kernel as wide as the batch
+    B = X.shape[0]
+    n_groups = -(-B // group)
+    pad = n_groups * group - B
+
+    def grouped(a):
+        a = jnp.concatenate([a, jnp.repeat(a[:1], pad, axis=0)]) if pad else a
+        return a.reshape((n_groups, group) + a.shape[1:])
+
+    arrays, static = eqx.partition(plant, eqx.is_array)
+    if plant_axis == 0:
+        vm = eqx.filter_vmap(lambda ar, *a: member(eqx.combine(ar, static), *a))
+        xs = (jtu.tree_map(grouped, arrays),)
+    else:
+        vm = eqx.filter_vmap(lambda *a: member(plant, *a))
+        xs = ()
+    out = jax.lax.map(lambda t: vm(*t), xs + (grouped(X), grouped(key_data), grouped(push_t), grouped(push_dx)))
+    return jtu.tree_map(lambda a: a.reshape((n_groups * group,) + a.shape[2:])[:B], out)
 
 
 def _constraint_drift(plant, ts, xs):
@@ -1033,10 +1050,21 @@ def _key(key, fsd, msd, owner):
 
 
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,
-                      force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None) -> ClosedLoop:
+                      force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None,
+                      group=4) -> ClosedLoop:
     """B closed loops (``closed_loop``'s arguments, one member per row of ``x0s`` (B, n))
     in one compiled program: ``closed_loop``'s ``lax.scan`` over periods, vmapped over
-    members. Returns a ``ClosedLoop`` whose arrays have a leading member axis.
+    groups of ``group`` members, the groups one after the other (``lax.map``; the last
+    group padded with copies of member 0, dropped from the result). Returns a
+    ``ClosedLoop`` whose arrays have a leading member axis.
+
+    Why groups: XLA's CPU runtime compiles a loop whose body moves less than
+    ``nhjax._xla_flags``' threshold of bytes per iteration as one function, and runs
+    a larger one kernel by kernel. A vmap over all members makes every loop of the
+    controller (the interior point's iterations, the Riccati sweeps, the RK4 steps) as
+    wide as the batch and runs it kernel by kernel; a few members at a time keep those
+    loops compiled whole. The horizon QPs are solved by the Riccati recursion when
+    ``mpc.qp`` is "auto" (no LAPACK call per member).
 
     in_axes : {"plant": 0} when the plant's array leaves carry a leading member axis
         (plant parameters per member, e.g. built with ``eqx.filter_vmap`` or stacked
@@ -1045,14 +1073,15 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         arrays (times (B, P), increments (B, P, n)) per member (a zero increment for
         a member without that push).
     keys : (B,) PRNG keys (``jax.random.split(key, B)``), required with noise.
+    group : members vmapped together (default 4).
 
     How it relates to ``nhjax.simulate_batch``: that function steps adaptive solves of
     unequal length in lanes and refills a lane when its member ends; here every member
     runs the same number of periods with the same fixed-step plant integration, so all
-    end together and nothing is refilled. In the converged mode a period's SQP loop is a
-    ``lax.while_loop`` under ``vmap``: each member stops iterating (its values frozen)
-    when it converges and the batch's period ends when its slowest member does; the
-    real-time mode does the same work for every member. Per-member statuses say which
+    end together and nothing is refilled. A period's SQP loop (converged mode) and the
+    QP's interior-point loop are ``lax.while_loop``s under ``vmap``: each member stops
+    iterating (its values frozen) when it converges and its group's loop ends when the
+    group's slowest member does. Per-member statuses say which
     members converged or fell back. For more members than one process holds, split
     ``x0s`` and map the chunks over a Dask client."""
     owner = "closed_loop_batch"
@@ -1064,6 +1093,8 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     if plant_axis not in (None, 0):
         raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
     periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0)
+    with as_problem_error():
+        group = V.integer("group", group, minimum=1, owner=owner)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
     X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
     if X.ndim != 2 or X.shape[1] != n:
@@ -1084,7 +1115,9 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
     plan0 = mpc.init(X[0], u_guess, t0)
     t0a = host_array(t0)
+    if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members
+        mpc = _with_qp(mpc, "riccati")
     xs, ys, us, status, J, drift = _batch_program(
         mpc, plant, plant_axis, jnp.asarray(X), plan0.u, t0a, jax.random.key_data(keys), jnp.asarray(push_t),
-        jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps)
+        jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps, min(group, B))
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

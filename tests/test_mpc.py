@@ -7,7 +7,10 @@ computed here independently (single shooting, jax.grad); a push is rejected by t
 real-time iteration with a model error; an unreachable terminal constraint is
 reported period by period and the fallback applies the previous plan; bad input is
 refused with MPCError before any numerics; a batch member is the same loop run alone.
-The interior-point QP is checked against its own optimality conditions.
+The interior-point QP is checked against its own optimality conditions, its
+stage-wise (Riccati) form against the dense one on the condensed problem; the
+disturbance observer's update against its formula, and its offset-free property on
+a plant with a constant torque bias.
 """
 
 import equinox as eqx
@@ -18,6 +21,8 @@ import pytest
 
 import controls
 from controls import MPC, MPCError, ProblemError, box_qp, closed_loop, closed_loop_batch
+from controls._qp import _spd_inverse, stage_qp
+from nhjax.mechanics import AbstractSystem
 from controls.tasks.somersault import Effort
 from nhjax.scenes import FallingCat, FallingCatKinematic, ShellWithTop
 
@@ -245,7 +250,11 @@ def test_bad_input_gets_a_named_error_before_numerics():
 def test_batch_member_is_the_loop_run_alone():
     """Three members with other starts, plant inertias (in_axes plant), pushes and
     noise keys: each member's inputs, states, statuses and cost are those of
-    closed_loop on the member alone (the same numbers up to rounding)."""
+    closed_loop on the member alone (the same numbers up to rounding). The loop alone
+    solves its QPs densely (``qp="auto"`` picks "dense" for N m = 20 inputs), the batch
+    by the Riccati recursion in groups of 2 members (the third member alone in a padded
+    group): the two solvers' steps agree through 25 closed-loop periods."""
+    assert _regulator()[0]._qp_kind() == "dense"
     mpc, _ = _regulator()
     scales = np.array([1.0, 1.1, 0.9])
     plants = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[FallingCat(I1=CAT.I1 * s) for s in scales])
@@ -255,7 +264,8 @@ def test_batch_member_is_the_loop_run_alone():
     times = np.full((3, 1), 0.3)
     keys = jax.random.split(jax.random.key(7), 3)
     noise = dict(force_noise=0.01, measurement_noise=1e-3)
-    batch = closed_loop_batch(mpc, plants, X, PERIODS, in_axes={"plant": 0}, pushes=(times, kicks), keys=keys, **noise)
+    batch = closed_loop_batch(mpc, plants, X, PERIODS, in_axes={"plant": 0}, pushes=(times, kicks), keys=keys,
+                              group=2, **noise)
     for i in (1, 2):
         alone = closed_loop(mpc, FallingCat(I1=CAT.I1 * scales[i]), X[i], PERIODS, pushes=[(0.3, kicks[i, 0])],
                             key=keys[i], **noise)
@@ -292,3 +302,150 @@ def test_box_qp_meets_its_optimality_conditions():
     _, _, ok, _ = jax.jit(box_qp)(jnp.asarray(H), jnp.asarray(g), jnp.ones((1, n)), jnp.array([10.0]),
                                   jnp.full(n, -0.3), jnp.full(n, 0.3))
     assert not bool(ok)
+
+
+def _condensed(Q, q, A, B, c, e0, P, p, C, b):
+    """The stage QP with the states eliminated, written here with numpy loops:
+    x_k = G_k d + e_k, H = sum_k S_k^T Q_k S_k + G_N^T P G_N, g its gradient at d = 0."""
+    N, n, m = B.shape
+    G, e = np.zeros((N + 1, n, N * m)), np.zeros((N + 1, n))
+    e[0] = e0
+    for k in range(N):
+        G[k + 1] = A[k] @ G[k]
+        G[k + 1][:, k * m:(k + 1) * m] += B[k]
+        e[k + 1] = A[k] @ e[k] + c[k]
+    H, g = np.zeros((N * m, N * m)), np.zeros(N * m)
+    for k in range(N):
+        S = np.zeros((n + m, N * m))
+        S[:n], S[n:, k * m:(k + 1) * m] = G[k], np.eye(m)
+        H += S.T @ Q[k] @ S
+        g += S.T @ (Q[k] @ np.concatenate([e[k], np.zeros(m)]) + q[k])
+    H += G[N].T @ P @ G[N]
+    g += G[N].T @ (P @ e[N] + p)
+    return 0.5 * (H + H.T), g, C @ G[N], b - C @ e[N], G, e
+
+
+@pytest.mark.parametrize("me", [0, 1, 2])
+def test_stage_qp_is_box_qp_on_the_condensed_problem(me):
+    """Random stage-wise QPs (N = 8 intervals, 4 states, 2 inputs, random dynamics with
+    an affine term and a start, positive semidefinite stage blocks, me terminal
+    equalities, bounds that bind on several inputs, one input unbounded below and one
+    above): stage_qp's inputs and multipliers are box_qp's on the condensed problem
+    (built here independently) to 1e-10, its states are the dynamics' rollout of its
+    inputs, and both report success. Unreachable terminal equalities (me > 0: bounds
+    too tight) are reported as failures by both."""
+    rng = np.random.default_rng(10 + me)
+    N, n, m = 8, 4, 2
+    for trial in range(3):
+        R = rng.standard_normal((N, n + m, n + m))
+        Q = 0.3 * np.einsum("kij,klj->kil", R, R) + np.diag(np.r_[np.zeros(n), 0.1 * np.ones(m)])
+        q = rng.standard_normal((N, n + m))
+        A = np.eye(n) + 0.2 * rng.standard_normal((N, n, n))
+        B = rng.standard_normal((N, n, m))
+        c, e0 = 0.1 * rng.standard_normal((N, n)), rng.standard_normal(n)
+        R2 = rng.standard_normal((n, n))
+        P, p = R2 @ R2.T, rng.standard_normal(n)
+        C, b = rng.standard_normal((me, n)), 0.1 * rng.standard_normal(me)
+        lo, hi = -0.3 * np.ones((N, m)), 0.4 * np.ones((N, m))
+        lo[0, 0], hi[1, 1] = -np.inf, np.inf
+        H, g, Ac, bc, G, e = _condensed(Q, q, A, B, c, e0, P, p, C, b)
+        d, y, ok, _ = jax.jit(box_qp)(*(jnp.asarray(a) for a in (H, g, Ac, bc, lo.reshape(-1), hi.reshape(-1))))
+        u, x, y2, ok2, _ = jax.jit(stage_qp)(*(jnp.asarray(a) for a in (Q, q, A, B, c, e0, P, p, C, b, lo, hi)))
+        d, u, x = np.asarray(d), np.asarray(u), np.asarray(x)
+        assert bool(ok) and bool(ok2)
+        at_bound = np.isclose(d, lo.reshape(-1), atol=1e-12) | np.isclose(d, hi.reshape(-1), atol=1e-12)
+        assert at_bound.sum() >= 2  # the bounds bind
+        np.testing.assert_allclose(u.reshape(-1), d, rtol=0, atol=1e-10)
+        np.testing.assert_allclose(np.asarray(y2), np.asarray(y), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(x, np.einsum("kia,a->ki", G, u.reshape(-1)) + e, rtol=0, atol=1e-10)
+    if me:
+        b_far = 100.0 * np.ones(me)  # C x_N = 100 with |u| <= 0.4: unreachable
+        _, _, _, ok2, _ = jax.jit(stage_qp)(*(jnp.asarray(a) for a in (Q, q, A, B, c, e0, P, p, C, b_far, lo, hi)))
+        assert not bool(ok2)
+
+
+def test_spd_inverse_unrolled_is_the_inverse():
+    """The unrolled Cholesky inverse of the Riccati's m x m blocks (m = 1 .. 4, a
+    batch of random SPD matrices) is numpy's inverse to 1e-12 relative."""
+    rng = np.random.default_rng(4)
+    for m in range(1, 5):
+        R = rng.standard_normal((6, m, m))
+        M = np.einsum("bij,bkj->bik", R, R) + 0.5 * np.eye(m)
+        np.testing.assert_allclose(np.asarray(jax.jit(_spd_inverse)(jnp.asarray(M))), np.linalg.inv(M), rtol=1e-12,
+                                   atol=1e-12)
+
+
+def test_disturbance_observer_update_is_its_formula():
+    """MPC.step with a previous measurement y_prev and inputs u_prev: the new estimate
+    is d + gain (y - y_hat) / period, y_hat the model's RK4 map (with d) over the last
+    period, computed here from the model's vector field; before the first period
+    (has_prev False) the estimate is left as it is."""
+    gain = np.array([0.0, 0.5, 1.0, 0.5, 1.0])
+    mpc = MPC(_terminal_cost_ocp(), PERIOD, N, mode="rti", disturbance_gain=gain)
+    plan = mpc.init()
+    d0 = jnp.array([0.0, 0.01, -0.02, 0.03, 0.0])
+    u_prev = jnp.array([[0.2, -0.1]])
+    y_prev = X0
+    h = float(mpc.h)
+
+    def f(x):
+        return CAT.vector_field(0.0, x, u_prev[0]) + d0
+
+    k1 = f(y_prev)
+    k2 = f(y_prev + h / 2 * k1)
+    k3 = f(y_prev + h / 2 * k2)
+    k4 = f(y_prev + h * k3)
+    y_hat = y_prev + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    delta = jnp.array([1e-3, -2e-3, 3e-3, 0.05, -0.04])
+    step = jax.jit(lambda p, y: mpc.step(p, y, PERIOD, 1))
+    for has_prev in (True, False):
+        prev = eqx.tree_at(lambda p: (p.dist, p.y_prev, p.u_prev, p.has_prev), plan,
+                           (d0, y_prev, u_prev, jnp.asarray(has_prev)))
+        _, new, _ = step(prev, y_hat + delta)
+        want = d0 + gain * delta / PERIOD if has_prev else d0
+        np.testing.assert_allclose(np.asarray(new.dist), np.asarray(want), rtol=0, atol=1e-12)
+        assert bool(new.has_prev)
+        np.testing.assert_allclose(np.asarray(new.y_prev), np.asarray(y_hat + delta), rtol=0, atol=0)
+
+
+class TorqueBias(AbstractSystem):
+    """The cat whose actuators add a constant torque ``bias`` [N m] to the command."""
+
+    cat: FallingCat
+    bias: jax.Array
+    state_names = FallingCat.state_names
+    control_dim = 2
+
+    def vector_field(self, t, x, u):
+        return self.cat.vector_field(t, x, u + self.bias)
+
+
+def test_disturbance_observer_removes_the_offset_of_a_torque_bias():
+    """The regulator of the shape (receding horizon) against a plant whose actuators add
+    a constant torque (0.2, -0.1) N m: without the observer the shape settles off its
+    target (the controller keeps commanding what its model says holds the cat still);
+    with it (gain 1 on every component) the estimate absorbs the bias and the shape
+    error at the end is a tenth of the observer-less one or less."""
+    base, _ = _regulator()
+    plant = TorqueBias(CAT, jnp.array([0.2, -0.1]))
+    errors = {}
+    for gain in (0.0, 1.0):
+        mpc = MPC(base.ocp, PERIOD, N, mode="rti", disturbance_gain=gain)
+        loop = closed_loop(mpc, plant, X0, PERIODS)
+        xs = np.asarray(loop.trajectory.xs)
+        errors[gain] = np.abs(xs[-1, [0, 1]] - [0.8, 0.0]).max()
+    assert errors[0.0] > 1e-2  # the bias moved the shape off target
+    assert errors[1.0] < 0.1 * errors[0.0]
+
+
+def test_new_options_get_named_errors():
+    """qp, disturbance_gain and closed_loop_batch's group are checked before any numerics."""
+    ocp = _terminal_cost_ocp()
+    with pytest.raises(MPCError, match="qp"):
+        MPC(ocp, PERIOD, N, qp="cholesky")
+    with pytest.raises(MPCError, match="disturbance_gain"):
+        MPC(ocp, PERIOD, N, disturbance_gain=1.5)
+    with pytest.raises(MPCError, match="disturbance_gain"):
+        MPC(ocp, PERIOD, N, disturbance_gain=[0.5, 0.5])
+    with pytest.raises(MPCError, match="group"):
+        closed_loop_batch(MPC(ocp, PERIOD, N), CAT, np.asarray(X0)[None], 2, group=0)
