@@ -43,7 +43,6 @@ import jax
 import jax.numpy as jnp
 
 __all__ = ["box_qp", "stage_qp"]
-_DOT = False
 
 
 # ------------------------------------------------------------------ the iteration
@@ -216,22 +215,16 @@ def _mm(a, b):
     """a @ b for small matrices as a broadcast product and a sum: one element-wise loop
     that XLA fuses and, under vmap, vectorizes over the batch (a batched dot of tiny
     matrices runs as one small matrix product per member)."""
-    if _DOT:
-        return a @ b
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def _mv(a, v):
     """a @ v for a small matrix a, as ``_mm``."""
-    if _DOT:
-        return a @ v
     return jnp.sum(a * v[..., None, :], axis=-1)
 
 
 def _tv(a, v):
     """a^T @ v for a small matrix a, as ``_mm``."""
-    if _DOT:
-        return a.T @ v
     return jnp.sum(a * v[..., :, None], axis=-2)
 
 
