@@ -162,7 +162,7 @@ def test_direct_batch_members_are_their_own_sqp_solves_and_failures_stay_apart()
     guess = _loop_controls(param)
     guesses = np.stack([guess] * 6)
     guesses[5, 3] = np.nan
-    r = controls.solve_direct_batch(ocps, param, guesses, lanes=4, progress=False)
+    r = controls.solve_direct_batch(ocps, param, guesses, lanes=3, progress=False)  # (two groups: one program body)
     assert list(r.status) == ["converged"] * 4 + ["infeasible", "non_finite_input"]
     assert r.reasons[:4] == [""] * 4 and "control bounds" in r.reasons[4] and "NaN" in r.reasons[5]
     assert r.counts() == {"converged": 4, "infeasible": 1, "non_finite_input": 1}
