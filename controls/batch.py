@@ -157,8 +157,37 @@ def _first_static_difference(a, b) -> str:
     return ""
 
 
+class _Statuses:
+    """What both batch results answer from their ``status`` array: ``converged``,
+    ``len()`` and ``counts()`` over the statuses the class names (``STATUS_NAMES``)."""
+
+    STATUS_NAMES: tuple = ()
+
+    @property
+    def converged(self) -> np.ndarray:
+        return self.status == "converged"
+
+    def __len__(self) -> int:
+        return len(self.status)
+
+    def counts(self) -> dict:
+        """How many members ended with each status."""
+        return {s: int(np.sum(self.status == s)) for s in self.STATUS_NAMES if np.any(self.status == s)}
+
+
+def _problem_list(ocps, owner):
+    """The batch's problems as a non-empty list of ``OCP``s (one OCP: a list of one)."""
+    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
+    if not ocps:
+        raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
+    for i, o in enumerate(ocps):
+        if not isinstance(o, OCP):
+            raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
+    return ocps
+
+
 @dataclasses.dataclass(frozen=True)
-class BatchResult:
+class BatchResult(_Statuses):
     """Outcome of ``solve_pontryagin_batch``, member by member (axis 0 is the member).
 
     p0 : (B, n) initial costates [cost units per state unit]; nu : (B, m) multipliers.
@@ -190,16 +219,7 @@ class BatchResult:
     started_from: np.ndarray
     seconds: float
 
-    @property
-    def converged(self) -> np.ndarray:
-        return self.status == "converged"
-
-    def __len__(self) -> int:
-        return len(self.status)
-
-    def counts(self) -> dict:
-        """How many members ended with each status."""
-        return {s: int(np.sum(self.status == s)) for s in STATUSES if np.any(self.status == s)}
+    STATUS_NAMES = STATUSES
 
 
 @compiled(errors="off")  # (equinox's checks would fail every member when one fails)
@@ -305,12 +325,7 @@ def solve_pontryagin_batch(
     """
     owner = "solve_pontryagin_batch"
     t_start = time.perf_counter()
-    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
-    if not ocps:
-        raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
-    for i, o in enumerate(ocps):
-        if not isinstance(o, OCP):
-            raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
+    ocps = _problem_list(ocps, owner)
     for o in ocps:
         _check_pontryagin(o, owner, solver, u_star)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"),
@@ -409,7 +424,7 @@ DIRECT_STATUSES = ("converged", "max_iterations", "stalled", "infeasible", "non_
 
 
 @dataclasses.dataclass(frozen=True)
-class DirectBatchResult:
+class DirectBatchResult(_Statuses):
     """Outcome of ``solve_direct_batch``, member by member (axis 0 is the member).
 
     params : (B, P) each member's optimal control parameters.
@@ -442,16 +457,7 @@ class DirectBatchResult:
     rounds: int
     seconds: float
 
-    @property
-    def converged(self) -> np.ndarray:
-        return self.status == "converged"
-
-    def __len__(self) -> int:
-        return len(self.status)
-
-    def counts(self) -> dict:
-        """How many members ended with each status."""
-        return {s: int(np.sum(self.status == s)) for s in DIRECT_STATUSES if np.any(self.status == s)}
+    STATUS_NAMES = DIRECT_STATUSES
 
 
 @compiled(errors="off")  # (equinox's checks would fail every member when one fails)
@@ -532,16 +538,11 @@ def solve_direct_batch(
     """
     owner = "solve_direct_batch"
     t_start = time.perf_counter()
-    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
-    if not ocps:
-        raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
+    ocps = _problem_list(ocps, owner)
     B = len(ocps)
     params = list(param) if isinstance(param, (list, tuple)) else [param] * B
     if len(params) != B:
         raise ProblemError(f"{owner}: {len(params)} parametrizations for {B} problems: pass one, or one per problem")
-    for i, o in enumerate(ocps):
-        if not isinstance(o, OCP):
-            raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
     for o, p in zip(ocps, params):
         _check_sqp(o, p, owner, rtol, atol)
     check_tolerances(owner, ctol=ctol, gtol=gtol, ftol=ftol, max_iter=(max_iter, "int"),
