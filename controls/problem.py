@@ -290,7 +290,7 @@ def check_parametrization(param, ocp, owner):
                 f"...), got {type(param).__name__}")
     if param.dim != ocp.system.control_dim:
         raise ProblemError(
-            f"the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
+            f"{owner}: the parametrization has {param.dim} inputs, {type(ocp.system).__name__} takes "
             f"{ocp.system.control_dim}"
         )
     if V.is_traced(param.T, ocp.T):
