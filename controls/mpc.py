@@ -681,7 +681,7 @@ class MPC(eqx.Module):
             lo, hi = (np.asarray(b) for b in self._bounds())
             u_guess = np.broadcast_to(np.clip(0.0, lo, hi), (N, m))
         u_guess = _checked_matrix("u_guess", u_guess, (N, m), "MPC.init")
-        return Plan(*_init_program(self, jnp.asarray(x0), jnp.asarray(u_guess), host_array(t0)))
+        return Plan(*_init_program(self, host_array(x0), host_array(u_guess), host_array(t0)))
 
 
 def _with_qp(mpc, qp):
@@ -947,17 +947,21 @@ def _constraint_drift(plant, ts, xs):
 
 def _result(mpc, plant, t0, xs, ys, us, status, J, drift, periods):
     """The ClosedLoop of one loop's (or, with leading member axes, a batch's) arrays."""
+    # assembled on the host and handed over (no eager programs: a first answer pays
+    # for each of those in every new process)
     p = mpc.steps_per_period
     ts = np.asarray(t0) + np.arange(periods + 1) * float(mpc.period)
     if xs.ndim == 3:
         ts = np.broadcast_to(ts, xs.shape[:2])
-    u_at = jnp.concatenate([us[..., ::p, :], us[..., -1:, :]], axis=-2)
+    u_host, x_host = np.asarray(us), np.asarray(xs)
+    u_at = V.to_device(np.concatenate([u_host[..., ::p, :], u_host[..., -1:, :]], axis=-2))
     lead = xs.shape[:-2]
-    steps = jnp.full(lead, periods * p * 1)
-    traj = Trajectory(ts=jnp.asarray(ts), xs=xs, us=u_at, work=None, invariants={}, invariant_drift={},
+    steps = jax.device_put(np.full(lead, periods * p))
+    traj = Trajectory(ts=V.to_device(ts), xs=xs, us=u_at, work=None, invariants={}, invariant_drift={},
                       constraint_drift=dict(drift), num_steps=steps, num_accepted_steps=steps,
-                      num_rejected_steps=jnp.zeros(lead, int), t_final=jnp.asarray(ts[..., -1]), x_end=xs[..., -1, :],
-                      result=None, event_mask=None, state_names=tuple(plant.state_names))
+                      num_rejected_steps=jax.device_put(np.zeros(lead, int)), t_final=V.to_device(ts[..., -1]),
+                      x_end=V.to_device(x_host[..., -1, :]), result=None, event_mask=None,
+                      state_names=tuple(plant.state_names))
     return ClosedLoop(trajectory=traj, inputs=us, measurements=ys, status=MPCStatus(*status), cost=J)
 
 
@@ -1003,18 +1007,17 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
     x0 = _checked_vector("x0", x0, n, owner)
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
-    key = _key(key, fsd, msd, owner)
+    kd = _key_data(key, fsd, msd, owner)
     push_t, push_dx = _pushes(pushes, n, (), owner)
     plan0 = mpc.init(x0, u_guess, t0)
     t0a = host_array(t0)
-    kd = jax.random.key_data(key)
-    pt, pdx, fs, ms = jnp.asarray(push_t), jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd)
+    pt, pdx, fs, ms = (host_array(a) for a in (push_t, push_dx, fsd, msd))
     if not timing:
-        xs, ys, us, status, J, drift = _loop_program(mpc, plant, jnp.asarray(x0), _fields(plan0), t0a, kd, pt, pdx,
+        xs, ys, us, status, J, drift = _loop_program(mpc, plant, host_array(x0), _fields(plan0), t0a, kd, pt, pdx,
                                                      fs, ms, periods, plant_substeps)
         return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)
     force, meas = _draws_program(mpc, kd, periods, plant_substeps, fs, ms)
-    x, plan, J = jnp.asarray(x0), _fields(plan0), jnp.zeros(())
+    x, plan, J = host_array(x0), _fields(plan0), host_array(0.0)
     # compiled (or loaded) before the clock runs: solve_ms is the solve after compile
     warm = _step_program(mpc, plan, x, t0a, jnp.asarray(np.asarray(0, np.int64)))
     jax.block_until_ready(_plant_program(mpc, plant, x, t0a, warm[0], force[0], pt, pdx, plant_substeps))
@@ -1041,12 +1044,17 @@ def _drift_program(plant, ts, xs):
     return _constraint_drift(plant, ts, xs)
 
 
-def _key(key, fsd, msd, owner):
+def _key_data(key, fsd, msd, owner):
+    """The raw data of ``key`` (default: that of ``jax.random.key(0)``, handed over from
+    the host: the default key is only drawn from when no noise is asked for, and
+    ``jax.random.key`` is two eager programs, paid in every new process)."""
     if key is None:
         if np.any(fsd > 0) or np.any(msd > 0):
             raise MPCError(f"{owner}: noise needs a PRNG key: pass key=jax.random.key(seed)")
-        return jax.random.key(0)
-    return key
+        if jax.config.jax_default_prng_impl == "threefry2x32":  # key(0)'s data: (0, 0)
+            return jax.device_put(np.zeros(2, np.uint32))
+        key = jax.random.key(0)
+    return jax.random.key_data(key)
 
 
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,

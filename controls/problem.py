@@ -391,7 +391,8 @@ class OCP(eqx.Module):
         if value is None:
             return None
         try:
-            b = jnp.broadcast_to(jnp.asarray(value, float), (k,))
+            b = (jnp.broadcast_to(jnp.asarray(value, float), (k,)) if V.is_traced(value)
+                 else host_array(np.broadcast_to(np.asarray(value, float), (k,))))
         except (TypeError, ValueError):
             raise ProblemError(f"OCP: {name} must be a number or an array of {k} numbers (one per input), "
                                f"got {value!r}") from None

@@ -392,7 +392,9 @@ def ball_moment(name, J, m, r, *, owner="", what="moment of inertia about a diam
 def shell_moment(Is, ms, Rs, *, owner=""):
     """A spherical shell's central moment Is [kg m^2]: 2/3 ms Rs^2 (a thin shell) when
     None, else 0 < Is <= 2/3 ms Rs^2 (``ball_moment``)."""
-    return ball_moment("Is", 2.0 / 3.0 * ms * Rs**2 if Is is None else Is, ms, Rs, owner=owner,
+    if Is is None:  # on the host where the numbers are concrete (no eager programs)
+        Is = 2.0 / 3.0 * ms * Rs**2 if is_traced(ms, Rs) else 2.0 / 3.0 * np.asarray(ms) * np.asarray(Rs) ** 2
+    return ball_moment("Is", Is, ms, Rs, owner=owner,
                        what="central moment of inertia of the shell [kg m^2]", names=("ms", "Rs"))
 
 
@@ -454,18 +456,19 @@ def _is_group(space) -> bool:
     return type(space) in _GROUP_NAMES
 
 
-def group_residual(space, a):
+def group_residual(space, a, xp=jnp):
     """(residual, orientation) of a leaf on its group: max |R^T R - I| and det R
     (SO(3)); ||q| - 1| and 1 (S^3); the rotation block's error, the bottom row's
-    distance from (0, 0, 1), and the block's det (SE(2)). jit/vmap-able."""
+    distance from (0, 0, 1), and the block's det (SE(2)). jit/vmap-able; ``xp=np``
+    computes it on the host (a concrete value: no eager programs)."""
     if isinstance(space, UnitQuaternionBody):
-        return jnp.abs(jnp.linalg.norm(a) - 1.0), jnp.ones((), a.dtype)
+        return xp.abs(xp.linalg.norm(a) - 1.0), xp.ones((), a.dtype)
     if isinstance(space, SE2Body):
         A = a[:2, :2]
-        r = jnp.maximum(jnp.max(jnp.abs(A.T @ A - jnp.eye(2))),
-                        jnp.max(jnp.abs(a[2] - jnp.array([0.0, 0.0, 1.0]))))
-        return r, jnp.linalg.det(A)
-    return jnp.max(jnp.abs(a.T @ a - jnp.eye(3))), jnp.linalg.det(a)
+        r = xp.maximum(xp.max(xp.abs(A.T @ A - xp.eye(2))),
+                       xp.max(xp.abs(a[2] - xp.asarray([0.0, 0.0, 1.0]))))
+        return r, xp.linalg.det(A)
+    return xp.max(xp.abs(a.T @ a - xp.eye(3))), xp.linalg.det(a)
 
 
 def _polar(A):
@@ -571,7 +574,7 @@ def _group_message(name, space, residual, det, tol, owner, projected=False):
 
 
 def _check_group_value(name, space, arr, tol, owner):
-    r, d = (float(v) for v in group_residual(space, jnp.asarray(arr)))
+    r, d = (float(v) for v in group_residual(space, np.asarray(arr, float), xp=np))
     if not (np.isfinite(r) and r <= tol and d > 0):
         raise GroupMembershipError(_group_message(name, space, r, d, tol, owner), name, r, tol)
 

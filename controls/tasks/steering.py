@@ -91,7 +91,7 @@ import nhjax
 
 from ..newton import solve_direct_newton
 from ..parametrize import fit_samples
-from ..problem import OCP, CostAugmented, ProblemError, _OnState, compiled
+from ..problem import OCP, CostAugmented, ProblemError, _OnState, compiled, host_array
 from .somersault import Effort
 
 __all__ = [
@@ -194,8 +194,8 @@ def sphere_steering(robot: ShellWithTop, target_xy, T, heading=None) -> OCP:
         psi = np.asarray(heading, dtype=float)
         if psi.shape != () or not np.isfinite(psi):
             raise ProblemError(f"heading must be a finite angle in radians (a scalar), got {heading!r}")
-        normal = jnp.asarray([-np.sin(psi), np.cos(psi)])
-    constraint = SteeringTarget(jnp.asarray(target), jnp.asarray(plane), jnp.asarray(Rt0.T[:, 0]), normal)
+        normal = host_array([-np.sin(psi), np.cos(psi)])
+    constraint = SteeringTarget(host_array(target), host_array(plane), host_array(Rt0.T[:, 0]), normal)
     return OCP(robot, x0, T, running_cost=Effort(), terminal_constraints=constraint)
 
 
