@@ -22,6 +22,10 @@ Solvers:
 
 * ``RKMK45``: Dormand–Prince 5(4) tableau (Shampine's coefficients, FSAL),
   adaptive (works with ``diffrax.PIDController``), 4th-order dense output.
+* ``RKMK87``: Prince & Dormand's 8(7) pair (RK8(7)13M, with the stage at the new
+  point appended as a 14th, FSAL, stage: diffrax's ``Dopri8`` tableau), adaptive;
+  dense output of order 5 only (see ``RKMK87``: ``simulate`` ends steps at the save
+  times instead).
 * ``RKMK4``: the classical 4th-order tableau, fixed step (``ConstantStepSize``).
 """
 
@@ -43,7 +47,7 @@ from diffrax import AbstractLocalInterpolation, AbstractTerm
 
 from ..lie.spaces import Euclidean, is_space
 
-__all__ = ["LieODETerm", "RKMK4", "RKMK45"]
+__all__ = ["LieODETerm", "RKMK4", "RKMK45", "RKMK87"]
 
 
 class LieODETerm(AbstractTerm):
@@ -92,6 +96,8 @@ def _map(fn, spaces, *trees):
 def _lincomb(coeffs, ks, h):
     """h * sum_j coeffs[j] * ks[j] over pytrees (skipping exact zeros)."""
     terms = [(float(c), k) for c, k in zip(coeffs, ks) if float(c) != 0.0]
+    if not terms:
+        return jtu.tree_map(lambda k: jnp.zeros_like(h * k), ks[0])
 
     def comb(*leaves):
         out = terms[0][0] * leaves[0]
@@ -136,6 +142,12 @@ class _Tableau:
     c_mid: np.ndarray | None
     order: int
     fsal: bool
+    # continuous extension sigma(s) = s * sum_i p_i(s) h k_i, s = (t - t0)/h in [0, 1]:
+    # row i holds p_i's coefficients, highest power first (None: c_mid's quartic, or
+    # else the cubic Hermite)
+    dense: np.ndarray | None = None
+    # order of the dense output (its local error is O(h^(dense_order + 1)))
+    dense_order: int = 0
 
 
 # Dormand–Prince 5(4), Shampine's form with FSAL (Hairer, Nørsett & Wanner I, Table 5.2),
@@ -176,6 +188,7 @@ _DOPRI5 = _Tableau(
     ),
     order=5,
     fsal=True,
+    dense_order=4,
 )
 
 _RK4 = _Tableau(
@@ -186,7 +199,41 @@ _RK4 = _Tableau(
     c_mid=None,
     order=4,
     fsal=False,
+    dense_order=3,
 )
+
+
+def _dopri8_tableau() -> _Tableau:
+    """Prince & Dormand's RK8(7)13M pair (J. Comput. Appl. Math. 7 (1981) 67-75) as
+    diffrax ships it (``diffrax.Dopri8.tableau``), with its continuous extension
+    (``diffrax.Dopri8.interpolation_cls.eval_coeffs``, after Bogacki & Shampine,
+    Comput. Math. Appl. 20 (1990) 15-24). diffrax appends a 14th stage at (t1, y1)
+    whose row is the 8th-order weights: the pair's 13 stages plus FSAL, 13 new
+    evaluations per step. The interpolant uses that 14th stage; its order is 5 (local
+    error O(h^6), measured: test_rkmk87_dense_output_is_fifth_order). Read from
+    diffrax at import and checked, not retyped."""
+    bt = diffrax.Dopri8.tableau
+    c = np.concatenate([[0.0], np.asarray(bt.c, float)])
+    a = ((),) + tuple(tuple(float(x) for x in row) for row in bt.a_lower)
+    b = np.asarray(bt.b_sol, float)
+    b_err = np.asarray(bt.b_error, float)
+    dense = np.asarray(diffrax.Dopri8.interpolation_cls.eval_coeffs, float)
+    n = len(c)
+    if not (n == 14 and len(a) == n and b.shape == b_err.shape == (n,) and dense.shape[0] == n
+            and c[-1] == 1.0 and np.array_equal(np.asarray(a[-1]), b[:-1]) and b[-1] == 0.0
+            and np.allclose([np.sum(r) for r in a[1:]], c[1:], rtol=0, atol=1e-14)
+            and np.allclose(dense.sum(axis=1), b, rtol=0, atol=1e-12)):
+        raise ImportError("diffrax.Dopri8's tableau is not the 14-stage FSAL form nhjax.RKMK87 was built on")
+    # The published interpolation coefficients end at sum_i p_i(1) k_i, which differs
+    # from the step's b by up to 1e-12 (they are rounded decimals): put the difference
+    # into the leading coefficient, so that the interpolant ends at the step's solution
+    # to round-off (saved states at step ends, see RKMK87, are then the steps' own).
+    dense = dense.copy()
+    dense[:, 0] += b - dense.sum(axis=1)
+    return _Tableau(c=c, a=a, b=b, b_err=b_err, c_mid=None, order=8, fsal=True, dense=dense, dense_order=5)
+
+
+_DOPRI8 = _dopri8_tableau()
 
 
 def _stages_scanned(self, terms, spaces, t0, h, y0, args, f0, redo=None, entry=None):
@@ -270,6 +317,13 @@ class _AbstractRKMK(diffrax.AbstractSolver):
 
     def order(self, terms):
         return self.tableau.order
+
+    @property
+    def needs_step_ts(self) -> bool:
+        """Whether the dense output is less accurate than the steps (its order below
+        the embedded error estimate's, order - 1): then saved states should be step
+        ends (``PIDController(step_ts=save times)``, as ``simulate`` does)."""
+        return self.tableau.dense_order < self.tableau.order - 1
 
     def init(self, terms, t0, t1, y0, args):
         if self._flagged():
@@ -363,7 +417,15 @@ class _AbstractRKMK(diffrax.AbstractSolver):
         else:
             y_error = None
 
-        if tab.c_mid is not None:
+        if tab.dense is not None:
+            # sigma(s) = s * sum_i p_i(s) h k_i: one coefficient per power of s, and a zero
+            # constant term (sigma(0) = 0)
+            coeffs = jtu.tree_map(
+                lambda *cs: jnp.stack(cs),
+                *[_lincomb(tab.dense[:, j], ks, h) for j in range(tab.dense.shape[1])],
+                jtu.tree_map(jnp.zeros_like, sigma),
+            )
+        elif tab.c_mid is not None:
             sig_mid = _lincomb(tab.c_mid, ks, h)
             coeffs = jtu.tree_map(
                 lambda s, m, k0, k1: _quartic(s, m, h * k0, h * k1),
@@ -404,6 +466,28 @@ class RKMK45(_AbstractRKMK, diffrax.AbstractAdaptiveSolver):
     """
 
     tableau: ClassVar[_Tableau] = _DOPRI5
+
+
+class RKMK87(_AbstractRKMK, diffrax.AbstractAdaptiveSolver):
+    """Adaptive Munthe-Kaas method on Prince & Dormand's 8(7) pair (order 8).
+
+    The tableau is diffrax's ``Dopri8`` (RK8(7)13M, J. Comput. Appl. Math. 7 (1981)
+    67-75, with an appended FSAL stage): 13 vector-field evaluations per step. On
+    vector-space states it is plain ``diffrax.Dopri8``. Use with
+    ``diffrax.PIDController``; the error estimate (of the 7th-order embedded
+    solution) is taken in the algebra and mapped to ambient coordinates at the step
+    start, as in ``RKMK45``.
+
+    Dense output: diffrax's continuous extension (Bogacki & Shampine 1990), applied
+    to the algebra coordinates sigma and retracted, is of order 5 only: between
+    steps its error is O(h^6), far above the steps' own at tight tolerances.
+    ``nhjax.simulate`` therefore ends steps at the save times (``needs_step_ts``:
+    ``diffrax.PIDController(step_ts=save times)``), so saved states are step ends;
+    with diffeqsolve directly, pass ``step_ts`` yourself for saved states at
+    tolerance level.
+    """
+
+    tableau: ClassVar[_Tableau] = _DOPRI8
 
 
 class RKMK4(_AbstractRKMK):
