@@ -32,7 +32,9 @@ def reference():
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(ambient_vf), diffrax.Dopri8(), 0.0, 10.0, 0.01, Y0,
         saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13), max_steps=100_000,
+        # steps end at the save times: Dopri8's dense output is only 5th order (see
+        # test_rkmk87_dense_output_is_fifth_order), ~1e-10 between steps here
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13, step_ts=ts), max_steps=100_000,
     )
     return ts, sol.ys
 
@@ -67,6 +69,76 @@ def test_rkmk45_tolerance_proportionality_and_dense_output(reference):
         prev = err
 
 
+def test_rkmk87_is_eighth_order(reference):
+    """Fixed steps h, h/2, h/4 on the tumbling top: the error falls by 2^8."""
+    import jax
+
+    _, (Rref, Wref) = reference
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+    solve = jax.jit(lambda dt: diffrax.diffeqsolve(term, nhjax.RKMK87(), 0.0, 10.0, dt, Y0, max_steps=200).ys)
+    errs = []
+    for n in (30, 60, 120):  # errors ~8e-8, 2e-10, 6e-13: above the reference's ~1e-13
+        R, W = (a[-1] for a in solve(10.0 / n))
+        errs.append(max(np.abs(R - Rref[-1]).max(), np.abs(W - Wref[-1]).max()))
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+    rates = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all(rates > 7.5), (errs, rates)
+
+
+def test_rkmk87_dense_output_is_fifth_order():
+    """diffrax's continuous extension of Dopri8 (used by RKMK87 in the algebra): over one
+    step its error at mid-step is O(h^6) (order 5), where the step itself is O(h^9). Why
+    simulate ends RKMK87's steps at the save times."""
+    import jax
+
+    from nhjax.integrate.rkmk import LieInterpolation
+
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+    solver = nhjax.RKMK87()
+
+    @jax.jit
+    def mid_error(h):
+        f0 = solver.init(term, 0.0, h, Y0, None)
+        _, _, dense, _, _ = solver.step(term, 0.0, h, Y0, None, f0, False)
+        interp = LieInterpolation(t0=0.0, t1=h, **dense).evaluate(0.5 * h)
+        direct = solver.step(term, 0.0, 0.5 * h, Y0, None, f0, False)[0]  # local error O(h^9)
+        return jnp.max(jnp.abs(interp[0] - direct[0])), dense["coeffs"]
+
+    errs = np.array([float(mid_error(h)[0]) for h in (0.4, 0.2, 0.1)])
+    rates = np.log2(errs[:-1] / errs[1:])
+    assert np.all((rates > 5.5) & (rates < 6.5)), (errs, rates)
+
+
+def test_rkmk87_tolerance_proportionality_and_saved_states(reference):
+    """Adaptive RKMK87 with steps ending at the save times (as simulate sets it up): every
+    saved state within a few hundred tolerances of the reference and on SO(3); from 1e-9
+    to 1e-12 the error falls with the tolerance (at 1e-6 the save times, every 0.25 s,
+    already force steps short enough for ~1e-8)."""
+    import jax
+
+    ts, (Rref, Wref) = reference
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+
+    @jax.jit
+    def solve(tol):
+        sol = diffrax.diffeqsolve(
+            term, nhjax.RKMK87(), 0.0, 10.0, None, Y0, saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol, step_ts=ts), max_steps=10_000,
+        )
+        return sol.ys, sol.stats["num_accepted_steps"]
+
+    errs = {}
+    for tol in (1e-6, 1e-9, 1e-12):
+        (Rs, Ws), _ = solve(tol)
+        orth = np.abs(np.einsum("nji,njk->nik", Rs, Rs) - np.eye(3)).max()
+        assert orth < 1e-14
+        errs[tol] = max(np.abs(Rs - Rref).max(), np.abs(Ws - Wref).max())
+        assert errs[tol] < 300 * tol, (tol, errs[tol])
+    assert errs[1e-12] < errs[1e-9] / 50, errs
+    # measured: 86 steps at 1e-12 without save times (RKMK45: 682)
+    assert int(solve(1e-12)[1]) < 150
+
+
 def test_long_run_stays_on_group():
     sol = diffrax.diffeqsolve(
         LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK45(), 0.0, 2000.0, None, Y0,
@@ -86,7 +158,7 @@ def test_long_run_stays_on_group():
     assert np.abs(Ra.T @ Ra - np.eye(3)).max() > 1e-6
 
 
-@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45()])
+@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45(), nhjax.RKMK87()])
 def test_constant_velocity_flows_are_exact(solver):
     """For constant body velocity the exact flow is y0 exp(t v): RKMK reproduces it to round-off."""
     v3 = jnp.array([0.7, -1.3, 2.9])
