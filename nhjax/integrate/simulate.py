@@ -685,18 +685,13 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
     if track_work is None:
         track_work = control is not None and _defines_power(system)
     flat_work = bool(track_work) and euclid and isinstance(x0, (jax.Array, np.ndarray)) and jnp.ndim(x0) == 1
-    ends_only = isinstance(saveat, (int, np.integer)) and int(saveat) == 2
-    ts = _save_times(saveat, t0, t1, runtime_errors)
     if stepsize_controller is None:
         if isinstance(solver, diffrax.AbstractAdaptiveSolver):
             # Tolerances as arrays: changing them does not recompile. The work of the
             # inputs, when tracked, stays out of the error norm: the steps (and so the
-            # states) are those of the same solve without it. A solver whose dense output
-            # is less accurate than its steps (RKMK87) has its steps end at the save
-            # times: the saved states are then step ends.
-            step_ts = ts if getattr(solver, "needs_step_ts", False) and not ends_only else None
+            # states) are those of the same solve without it.
             stepsize_controller = diffrax.PIDController(
-                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts, step_ts=step_ts,
+                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts,
                 norm=(_flat_state_norm if flat_work else _state_norm) if track_work else optx.rms_norm,
             )
         else:
@@ -725,10 +720,11 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         progress=bool(progress),
         state_names=tuple(system.state_names),
         project_steps=bool(project_steps),
-        ends_only=ends_only,
+        ends_only=isinstance(saveat, (int, np.integer)) and int(saveat) == 2,
         diagnostics=bool(diagnostics),
         flat_work=flat_work,
     )
+    ts = _save_times(saveat, t0, t1, runtime_errors)
     if dt0 is not None:
         traced_dt0 = _is_traced(dt0)
         dt0 = jnp.asarray(dt0, float)
@@ -776,11 +772,9 @@ def simulate(
     solver : a diffrax solver; default ``nhjax.RKMK45()``: Dormand-Prince 5(4),
         which on group-valued state parts is the Munthe-Kaas method (with its
         stages in a lax.scan when the system declares a large vector field).
-        ``nhjax.RKMK87()`` (Prince-Dormand 8(7), Munthe-Kaas on group-valued
-        parts) takes far fewer steps at tight tolerances (rtol, atol <= 1e-9); its
-        dense output is only of order 5, so its steps end at the save times
-        (``step_ts``) and the saved states are step ends: with many save times
-        (``saveat``) it takes at least one step per save interval.
+        ``nhjax.RKMK87()`` (Prince-Dormand 8(7), Munthe-Kaas on group-valued parts,
+        7th-order dense output) takes far fewer steps at tight tolerances (rtol,
+        atol <= 1e-9); pass ``RKMK87(scan_stages=True)`` for large vector fields.
     rtol, atol : tolerances of the default ``diffrax.PIDController``.
     dt0 : initial step; required (and the step) for fixed-step solvers.
     max_steps : budget of solver steps; exhausting it raises ``IntegrationError``.
