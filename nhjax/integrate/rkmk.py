@@ -463,10 +463,10 @@ class _AbstractRKMK(diffrax.AbstractSolver):
             f1 = (jnp.zeros((), bool), f1)
         return y1, y_error, dense_info, f1, diffrax.RESULTS.successful
 
-
     def _bootstrap(self, terms, spaces, t0, h, y0, args, sigma, k0, k1, coeffs):
         """Raise the order of the dense output by bootstrapping (Enright, Jackson,
-        Norsett & Thomsen, ACM TOMS 12 (1986) 193-218, sec. 5): with an interpolant u of
+        Norsett & Thomsen, "Interpolants for Runge-Kutta formulas", ACM TOMS 12 (1986)
+        193-218): with an interpolant u of
         order p (local error O(h^(p+1))), the algebra velocity h F(s_j, u(s_j)) at the
         nodes s_j is within O(h^(p+2)) of sigma'(s_j); the polynomial q of degree m + 3
         through sigma(0) = 0, sigma(1) and the slopes at 0, 1 (h k_1, and h k_end of the
