@@ -165,7 +165,7 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     ref = peers.reference_solution()
     solvers = {"Tsit5": diffrax.Tsit5(), "Dopri5": diffrax.Dopri5(), "Dopri8": diffrax.Dopri8(),
-               "RKMK45": nhjax.RKMK45()}
+               "RKMK45": nhjax.RKMK45(), "RKMK87": nhjax.RKMK87()}
     rows = peer_rows(ref) + nhjax_rows(ref, solvers)
     with open(OUT / "cat_work_precision.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))

@@ -24,7 +24,8 @@ separate, untimed run that saves at many times (same steps: saving uses dense
 output and does not clip steps; the row's ``timed_vs_measured`` is the largest
 difference between the final states of the two runs, which checks this). Default solver everywhere (``nhjax.RKMK45``:
 DP5(4), on SO(3) parts its Munthe-Kaas version) plus diffrax Dopri8 for two
-vector-state formulations.
+vector-state formulations and ``nhjax.RKMK87`` (8th order, Munthe-Kaas) for
+``ShellWithTop``.
 
 Scene 1 -- rolling disk (seed 002), circular motion of the tests: J1 = 0.35,
 J2 = 0.5, theta0 = 0.25, q0 = 2.17080452, ten orbits (t = 79.77). This is an
@@ -487,6 +488,8 @@ def shell_scene():
         ("ShellWithTopReduced Dopri8", red, xr0, {"solver": diffrax.Dopri8()}, "reduced", 8,
          "17-vector, diffrax Dopri8, frame projected (default)"),
         ("ShellWithTop", rob, yr0, {}, "robot", 5, "Hamel equations on R^2 x SO(3) x SO(3), RKMK45"),
+        ("ShellWithTop RKMK87", rob, yr0, {"solver": nhjax.RKMK87(scan_stages=True)}, "robot", 8,
+         "Hamel equations on R^2 x SO(3) x SO(3), RKMK87 (stages in a scan, as RKMK45's here)"),
         ("ShellWithTopLagrangian", lag, z0, {}, "lagrangian", 5, "rotation vectors on the engine, RKMK45 (= DP5), chart guard off"),
     ]
     for name, system, s0, kw, mapping, order, note in formulations:

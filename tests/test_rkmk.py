@@ -32,7 +32,9 @@ def reference():
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(ambient_vf), diffrax.Dopri8(), 0.0, 10.0, 0.01, Y0,
         saveat=diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13), max_steps=100_000,
+        # steps end at the save times: diffrax's Dopri8 dense output is only 5th order
+        # (test_rkmk87_dense_output_is_seventh_order), ~1e-10 off between steps here
+        stepsize_controller=diffrax.PIDController(rtol=1e-13, atol=1e-13, step_ts=ts), max_steps=100_000,
     )
     return ts, sol.ys
 
@@ -67,6 +69,90 @@ def test_rkmk45_tolerance_proportionality_and_dense_output(reference):
         prev = err
 
 
+def test_rkmk87_is_eighth_order(reference):
+    """Fixed steps h, h/2, h/4 on the tumbling top: the error falls by 2^8."""
+    import jax
+
+    _, (Rref, Wref) = reference
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+    solve = jax.jit(lambda dt: diffrax.diffeqsolve(term, nhjax.RKMK87(), 0.0, 10.0, dt, Y0, max_steps=200).ys)
+    errs = []
+    for n in (30, 60, 120):  # errors ~8e-8, 2e-10, 6e-13: above the reference's ~1e-13
+        R, W = (a[-1] for a in solve(10.0 / n))
+        errs.append(max(np.abs(R - Rref[-1]).max(), np.abs(W - Wref[-1]).max()))
+        np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-14)
+    rates = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
+    assert np.all(rates > 7.5), (errs, rates)
+
+
+def _max_diff(a, b):
+    return jnp.max(jnp.stack([jnp.max(jnp.abs(u - v)) for u, v in zip(a, b)]))
+
+
+def test_rkmk87_dense_output_is_seventh_order():
+    """RKMK87's dense output over one step of the tumbling top, at s = 0.3, 0.5, 0.9 of
+    the step, against a step of that length (local error O(h^9)): error O(h^8), order 7
+    (diffrax's Dopri8 interpolant bootstrapped twice). diffrax's own Dopri8 interpolant
+    on the same step, in ambient coordinates: about O(h^6), order 5."""
+    import jax
+
+    from nhjax.integrate.rkmk import LieInterpolation
+
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+    solver, d8, d8term = nhjax.RKMK87(), diffrax.Dopri8(), diffrax.ODETerm(ambient_vf)
+    thetas = (0.3, 0.5, 0.9)
+
+    @jax.jit
+    def errors(h):
+        f0 = solver.init(term, 0.0, h, Y0, None)
+        _, _, dense, _, _ = solver.step(term, 0.0, h, Y0, None, f0, False)
+        g0 = d8.init(d8term, 0.0, h, Y0, None)
+        _, _, dense8, _, _ = d8.step(d8term, 0.0, h, Y0, None, g0, False)
+        ours, theirs = [], []
+        for th in thetas:
+            direct = solver.step(term, 0.0, th * h, Y0, None, f0, False)[0]
+            ours.append(_max_diff(LieInterpolation(t0=0.0, t1=h, **dense).evaluate(th * h), direct))
+            theirs.append(_max_diff(d8.interpolation_cls(t0=0.0, t1=h, **dense8).evaluate(th * h), direct))
+        return jnp.stack(ours), jnp.stack(theirs)
+
+    out = [errors(h) for h in (0.4, 0.2, 0.1)]  # ours: ~3e-10, ~1.6e-12, ~7e-15 (measured)
+    ours = np.array([np.asarray(o) for o, _ in out])
+    theirs = np.array([np.asarray(t) for _, t in out])
+    rate_ours = np.log2(ours[:-1] / ours[1:])
+    rate_theirs = np.log2(theirs[:-1] / theirs[1:])
+    assert np.all(rate_ours > 7.3), (ours, rate_ours)  # measured 7.7 .. 7.9
+    # measured ~6 (6.8 at mid-step): order 5, and ~1e4 times ours at h = 0.1
+    assert np.all(rate_theirs < 7.0) and np.all(theirs[-1] > 100 * ours[-1]), (theirs, rate_theirs)
+
+
+def test_rkmk87_tolerance_proportionality_and_dense_output(reference):
+    """Adaptive RKMK87: every saved state (most of them dense output) on SO(3) and within a
+    few hundred tolerances of the reference, the error falling with the tolerance; far
+    fewer steps than RKMK45 at 1e-12."""
+    import jax
+
+    ts, (Rref, Wref) = reference
+    term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
+
+    @jax.jit
+    def solve(tol):
+        sol = diffrax.diffeqsolve(
+            term, nhjax.RKMK87(), 0.0, 10.0, None, Y0, saveat=diffrax.SaveAt(ts=ts),
+            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=10_000,
+        )
+        return sol.ys, sol.stats["num_accepted_steps"]
+
+    prev = np.inf
+    for tol in (1e-6, 1e-9, 1e-12):
+        (Rs, Ws), steps = solve(tol)
+        orth = np.abs(np.einsum("nji,njk->nik", Rs, Rs) - np.eye(3)).max()
+        assert orth < 1e-14
+        err = max(np.abs(Rs - Rref).max(), np.abs(Ws - Wref).max())
+        assert err < 300 * tol and err < prev / 50, (tol, err)
+        prev = err
+    assert int(steps) < 150  # measured 86 (RKMK45: 682)
+
+
 def test_long_run_stays_on_group():
     sol = diffrax.diffeqsolve(
         LieODETerm(euler_vf, (SO3Body(), Euclidean())), nhjax.RKMK45(), 0.0, 2000.0, None, Y0,
@@ -86,7 +172,7 @@ def test_long_run_stays_on_group():
     assert np.abs(Ra.T @ Ra - np.eye(3)).max() > 1e-6
 
 
-@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45()])
+@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45(), nhjax.RKMK87()])
 def test_constant_velocity_flows_are_exact(solver):
     """For constant body velocity the exact flow is y0 exp(t v): RKMK reproduces it to round-off."""
     v3 = jnp.array([0.7, -1.3, 2.9])
@@ -199,3 +285,86 @@ def test_a_solve_traces_the_step_once(monkeypatch):
     inlined = jax.jit(lambda x: nhjax.simulate(ball, x, 4.0, saveat=3, diagnostics=False).xs[-1])(x0)
     assert len(traces) >= 4
     np.testing.assert_allclose(nested, inlined, rtol=0, atol=1e-13)
+
+
+def _cat():
+    from nhjax.scenes import FallingCat
+
+    cat = FallingCat()
+    ctrl = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])
+    return cat, ctrl, cat.initial_state(0.8, chi_dot=0.5)
+
+
+def test_rkmk87_simulate_falling_cat_agrees_with_rkmk45_in_fewer_steps():
+    """simulate(..., solver=RKMK87()) on the falling cat over 10 s (vector state: Dopri8's
+    steps): final and all 101 saved states agree with RKMK45 at 1e-12, and at 1e-10 it
+    takes fewer accepted steps."""
+    cat, ctrl, x0 = _cat()
+    run = {}
+    for name, solver in (("45", nhjax.RKMK45()), ("87", nhjax.RKMK87())):
+        for tol in (1e-10, 1e-12):
+            run[name, tol] = nhjax.simulate(cat, x0, 10.0, control=ctrl, solver=solver, rtol=tol, atol=tol,
+                                            diagnostics=False)
+    a, b = run["45", 1e-12], run["87", 1e-12]
+    assert np.abs(np.asarray(a.xs) - np.asarray(b.xs)).max() < 1e-9
+    assert int(run["87", 1e-10].num_accepted_steps) < int(run["45", 1e-10].num_accepted_steps)
+
+
+def test_rkmk87_simulate_shell_with_top_agrees_with_rkmk45_in_fewer_steps():
+    """The spherical robot (R^2 x SO(3) x SO(3), nonholonomic rolling) over 3 s: RKMK87
+    (stages in a scan, as simulate's default RKMK45 for this large vector field) agrees
+    with RKMK45 at 1e-12 and takes fewer steps at 1e-10, attitudes on SO(3)."""
+    from nhjax.scenes import ShellWithTop
+
+    robot = ShellWithTop()
+    x0 = robot.initial_state(top_omega=(0.0, 0.0, 3.0))
+    ctrl = nhjax.Sinusoids(np.zeros(3), [0.02, -0.01, 0.015], [1.1, 0.7, 2.0], [0.0, 0.4, 1.0])
+    run = {}
+    for name, solver in (("45", nhjax.RKMK45(scan_stages=True)), ("87", nhjax.RKMK87(scan_stages=True))):
+        for tol in (1e-10, 1e-12):
+            run[name, tol] = nhjax.simulate(robot, x0, 3.0, control=ctrl, solver=solver, rtol=tol, atol=tol,
+                                            saveat=11, diagnostics=False)
+    a, b = run["45", 1e-12], run["87", 1e-12]
+    for u, v in zip(jax_leaves(a.xs), jax_leaves(b.xs)):
+        assert np.abs(np.asarray(u) - np.asarray(v)).max() < 1e-9
+    for R in b.xs[0][1:]:  # both attitudes at every saved time
+        R = np.asarray(R)
+        assert np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max() < 1e-13
+    assert int(run["87", 1e-10].num_accepted_steps) < int(run["45", 1e-10].num_accepted_steps)
+
+
+def jax_leaves(tree):
+    import jax
+
+    return jax.tree_util.tree_leaves(tree)
+
+
+# ("vjp": ~18 s, its jitted gradient compiled on every run; make test-all)
+@pytest.mark.parametrize("jacobians", ["auto", pytest.param("vjp", marks=pytest.mark.slow)])
+def test_rkmk87_discrete_adjoint_agrees_with_central_differences(jacobians):
+    """jax.grad through simulate with RKMK87 and DiscreteAdjoint ("auto": forward
+    sensitivities for these D = 3 inputs; "vjp": the recorded steps backwards), through
+    the saved states (dense output) and the final state, against central differences in the
+    torque amplitudes and the inertia ratio lam (truncation ~h^2, error ~tol/h)."""
+    import jax
+
+    from nhjax.scenes import FallingCat
+
+    _, ctrl, x0 = _cat()
+
+    def loss(p, adjoint):
+        amp, lam = p
+        c = nhjax.Sinusoids(ctrl.offset, amp, ctrl.omega, ctrl.phase)
+        tr = nhjax.simulate(FallingCat(lam=lam), x0, 4.0, control=c, solver=nhjax.RKMK87(), rtol=1e-11,
+                            atol=1e-11, saveat=21, adjoint=adjoint, diagnostics=False, track_work=False)
+        return tr.xs[-1, 2] ** 2 + 3.0 * tr.x_end[4] + jnp.sum(jnp.sin(tr.xs[:, 0]) * tr.xs[:, 3])
+
+    p = (ctrl.amplitude, jnp.asarray(0.3157894736842105))
+    g = jax.jit(jax.grad(lambda p: loss(p, nhjax.DiscreteAdjoint(jacobians=jacobians))))(p)
+    f = jax.jit(lambda p: loss(p, None))
+    amp, lam = p
+    h = 1e-5
+    fd = [(f((amp + h * e, lam)) - f((amp - h * e, lam))) / (2 * h) for e in np.eye(2)]
+    fd.append((f((amp, lam + h)) - f((amp, lam - h))) / (2 * h))
+    got = np.concatenate([np.asarray(g[0]), [float(g[1])]])
+    np.testing.assert_allclose(got, np.asarray(fd), rtol=2e-5)

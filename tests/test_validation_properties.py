@@ -323,6 +323,7 @@ EXEMPT = {
     "nhjax.DiscreteAdjoint": "solver configuration, its use checked by simulate (_configure)",
     "nhjax.RKMK4": "solver configuration, its use checked by simulate (_configure)",
     "nhjax.RKMK45": "solver configuration, its use checked by simulate (_configure)",
+    "nhjax.RKMK87": "solver configuration, its use checked by simulate (_configure)",
     "nhjax.stack": "stacks already-checked systems into a batch",
     "nhjax.mechanics.body_angular_velocity": "pure function of arrays (runs traced)",
     "nhjax.scenes.REGISTRY": "dict of the scene classes (each probed below)",

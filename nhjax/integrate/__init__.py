@@ -3,7 +3,7 @@
 from .adjoint import DiscreteAdjoint
 from .batch import BatchError, BatchTrajectory, simulate_batch, stack
 from .impacts import ImpactBatchTrajectory, ImpactTrajectory, simulate_impacts, simulate_impacts_batch, solve_impacts
-from .rkmk import LieODETerm, RKMK4, RKMK45
+from .rkmk import LieODETerm, RKMK4, RKMK45, RKMK87
 from .signals import PiecewiseConstant, PiecewiseLinear, Sinusoids
 from .simulate import Trajectory, simulate
 
@@ -18,6 +18,7 @@ __all__ = [
     "PiecewiseLinear",
     "RKMK4",
     "RKMK45",
+    "RKMK87",
     "Sinusoids",
     "Trajectory",
     "simulate",

@@ -63,7 +63,7 @@ Limits (checked or documented):
   one step's local error of the returned one (controls gives such trial
   controls an infinite cost, where this does not matter);
 * the solver's state must be a function of (t, y) alone (explicit Runge-Kutta,
-  FSAL or not: RKMK45, RKMK4, diffrax's explicit tableaus, ``ProjectedSolver``
+  FSAL or not: RKMK45, RKMK87, RKMK4, diffrax's explicit tableaus, ``ProjectedSolver``
   around them).
 """
 

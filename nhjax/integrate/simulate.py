@@ -680,7 +680,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         raise TypeError(
             f"{type(system).__name__} has group-valued state parts; "
             f"{type(solver).__name__} would integrate them in ambient coordinates and "
-            "drift off the group. Use nhjax.RKMK45() (adaptive) or nhjax.RKMK4() (fixed step)."
+            "drift off the group. Use nhjax.RKMK45() or nhjax.RKMK87() (adaptive) or nhjax.RKMK4() (fixed step)."
         )
     if track_work is None:
         track_work = control is not None and _defines_power(system)
@@ -772,6 +772,9 @@ def simulate(
     solver : a diffrax solver; default ``nhjax.RKMK45()``: Dormand-Prince 5(4),
         which on group-valued state parts is the Munthe-Kaas method (with its
         stages in a lax.scan when the system declares a large vector field).
+        ``nhjax.RKMK87()`` (Prince-Dormand 8(7), Munthe-Kaas on group-valued parts,
+        7th-order dense output) takes far fewer steps at tight tolerances (rtol,
+        atol <= 1e-9); pass ``RKMK87(scan_stages=True)`` for large vector fields.
     rtol, atol : tolerances of the default ``diffrax.PIDController``.
     dt0 : initial step; required (and the step) for fixed-step solvers.
     max_steps : budget of solver steps; exhausting it raises ``IntegrationError``.
