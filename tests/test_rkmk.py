@@ -100,29 +100,35 @@ def test_rkmk87_dense_output_is_seventh_order():
 
     term = LieODETerm(euler_vf, (SO3Body(), Euclidean()))
     solver, d8, d8term = nhjax.RKMK87(), diffrax.Dopri8(), diffrax.ODETerm(ambient_vf)
+    plain = nhjax.RKMK87(bootstrap=False)  # diffrax's interpolant, in the algebra
     thetas = (0.3, 0.5, 0.9)
 
     @jax.jit
     def errors(h):
         f0 = solver.init(term, 0.0, h, Y0, None)
-        _, _, dense, _, _ = solver.step(term, 0.0, h, Y0, None, f0, False)
+        y1, _, dense, _, _ = solver.step(term, 0.0, h, Y0, None, f0, False)
+        y1p, _, dense_p, _, _ = plain.step(term, 0.0, h, Y0, None, f0, False)
         g0 = d8.init(d8term, 0.0, h, Y0, None)
         _, _, dense8, _, _ = d8.step(d8term, 0.0, h, Y0, None, g0, False)
-        ours, theirs = [], []
+        ours, theirs, plains = [], [], []
         for th in thetas:
             direct = solver.step(term, 0.0, th * h, Y0, None, f0, False)[0]
             ours.append(_max_diff(LieInterpolation(t0=0.0, t1=h, **dense).evaluate(th * h), direct))
             theirs.append(_max_diff(d8.interpolation_cls(t0=0.0, t1=h, **dense8).evaluate(th * h), direct))
-        return jnp.stack(ours), jnp.stack(theirs)
+            plains.append(_max_diff(LieInterpolation(t0=0.0, t1=h, **dense_p).evaluate(th * h), direct))
+        return jnp.stack(ours), jnp.stack(theirs), jnp.stack(plains), _max_diff(y1, y1p)
 
     out = [errors(h) for h in (0.4, 0.2, 0.1)]  # ours: ~3e-10, ~1.6e-12, ~7e-15 (measured)
-    ours = np.array([np.asarray(o) for o, _ in out])
-    theirs = np.array([np.asarray(t) for _, t in out])
+    ours, theirs, plains, steps = (np.array([np.asarray(o[k]) for o in out]) for k in range(4))
     rate_ours = np.log2(ours[:-1] / ours[1:])
     rate_theirs = np.log2(theirs[:-1] / theirs[1:])
+    rate_plain = np.log2(plains[:-1] / plains[1:])
     assert np.all(rate_ours > 7.3), (ours, rate_ours)  # measured 7.7 .. 7.9
     # measured ~6 (6.8 at mid-step): order 5, and ~1e4 times ours at h = 0.1
     assert np.all(rate_theirs < 7.0) and np.all(theirs[-1] > 100 * ours[-1]), (theirs, rate_theirs)
+    # bootstrap=False: the same steps, with diffrax's order-5 interpolant (in the algebra)
+    assert np.all(steps == 0.0), steps
+    assert np.all(rate_plain < 7.0) and np.all(plains[-1] > 100 * ours[-1]), (plains, rate_plain)
 
 
 def test_rkmk87_tolerance_proportionality_and_dense_output(reference):
