@@ -126,7 +126,9 @@ class Parametrization(eqx.Module):
         if is_traced(params):
             params = jnp.asarray(params)
         else:
-            with as_problem_error():
+            # (concrete also under a caller's jax.jit that closes over params: the check's
+            # operations are then evaluated, not staged into the caller's program)
+            with as_problem_error(), jax.ensure_compile_time_eval():
                 params = np.asarray(V.real("params", params, owner=f"{type(self).__name__}.signal"))
         if params.shape != (self.size,):
             raise ProblemError(

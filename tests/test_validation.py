@@ -451,6 +451,11 @@ def test_control_parametrizations_and_horizons_follow_simulates_rules():
                                [[1.0, 1.5], [1.0, 2.0], [0.0, 0.5], [0.0, 0.0]], atol=1e-13)
     with pytest.raises(controls.ProblemError, match="takes 8 parameters, got shape \\(3,\\)"):
         cheb.signal(np.zeros(3))
+    # a concrete parameter array closed over by the caller's jax.jit is checked on the
+    # host, not traced (benchmarks/steering_peer.py's warm start did this)
+    p = jnp.arange(8.0) / 10
+    np.testing.assert_allclose(jax.jit(lambda t: cheb.signal(p)(t, None))(0.7), cheb.signal(p)(0.7, None),
+                               rtol=1e-15, atol=0)
     # a plain list is a state: the same numbers as the array; refused by name if not numbers
     cat = FallingCatKinematic()
     ocp = controls.OCP(cat, [0.6, 0.0, 0.0], 2.0, running_cost=_effort)
