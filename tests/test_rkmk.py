@@ -316,6 +316,9 @@ def test_rkmk87_simulate_falling_cat_agrees_with_rkmk45_in_fewer_steps():
     assert int(run["87", 1e-10].num_accepted_steps) < int(run["45", 1e-10].num_accepted_steps)
 
 
+# (~11 s cold; in the default run RKMK87 integrates the ShellWithTop steering's shooting
+# solves, checked by tests/test_steering.py; make test-all)
+@pytest.mark.slow
 def test_rkmk87_simulate_shell_with_top_agrees_with_rkmk45_in_fewer_steps():
     """The spherical robot (R^2 x SO(3) x SO(3), nonholonomic rolling) over 3 s: RKMK87
     (stages in a scan, as simulate's default RKMK45 for this large vector field) agrees
