@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-BENCHMARKS = ["cat_work_precision", "scene_work_precision", "batch_throughput", "compile_times", "rolling_work_precision", "somersault_peer", "steering_peer", "long_run", "impacts", "reduction_work_precision", "ocp_batch", "rkmk87_work_precision"]
+BENCHMARKS = ["cat_work_precision", "scene_work_precision", "batch_throughput", "compile_times", "rolling_work_precision", "somersault_peer", "steering_peer", "long_run", "impacts", "reduction_work_precision", "ocp_batch", "rkmk87_work_precision", "mpc"]
 
 if __name__ == "__main__":
     chosen = sys.argv[1:] or BENCHMARKS
