@@ -348,8 +348,11 @@ def jax_leaves(tree):
     return jax.tree_util.tree_leaves(tree)
 
 
-# ("vjp": ~18 s, its jitted gradient compiled on every run; make test-all)
-@pytest.mark.parametrize("jacobians", ["auto", pytest.param("vjp", marks=pytest.mark.slow)])
+# (make test-all: "vjp" ~18 s, its jitted gradient compiled on every run; "auto" ~13 s,
+# and in the default run test_steering's shooting Jacobian, forward sensitivities
+# through RKMK87 on SO(3) x SO(3), is checked against central differences)
+@pytest.mark.parametrize("jacobians", [pytest.param("auto", marks=pytest.mark.slow),
+                                       pytest.param("vjp", marks=pytest.mark.slow)])
 def test_rkmk87_discrete_adjoint_agrees_with_central_differences(jacobians):
     """jax.grad through simulate with RKMK87 and DiscreteAdjoint ("auto": forward
     sensitivities for these D = 3 inputs; "vjp": the recorded steps backwards), through
