@@ -230,8 +230,7 @@ def _restore_broyden(sh, z, y, A, Q, Qi, tol, max_iter=20):
             if v <= 1e-3 * tol:
                 break
             if slow and v > tol:
-                y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
-                A = D[1:]
+                A = np.asarray(_values_and_jacobian(sh, z)[1])[1:]
         else:
             fails += 1
             if fails >= 2 or v <= tol:
