@@ -22,13 +22,16 @@ process (the machine is shared: the load average at start and end is printed).
 Stages in a lax.scan where the system declares a large vector field, as simulate's
 default RKMK45 does.
 
-Run: ``.venv/bin/python benchmarks/rkmk87_work_precision.py``.
+Run: ``.venv/bin/python benchmarks/rkmk87_work_precision.py``; writes
+experiments/out/bench/rkmk87_work_precision.json (rows and the load average).
 """
 
 from __future__ import annotations
 
+import json
 import os
 import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -37,6 +40,7 @@ import numpy as np
 import nhjax
 import nhjax.scenes as S
 
+OUT = Path(__file__).resolve().parent.parent / "experiments" / "out" / "bench"
 TOLS = (1e-8, 1e-10, 1e-12)
 REPEATS = 5
 
@@ -56,7 +60,8 @@ def max_diff(a, b):
 
 
 def main():
-    print(f"load average at start: {os.getloadavg()}")
+    load_start = os.getloadavg()
+    print(f"load average at start: {load_start}")
     rows = []
     for scene, system, x0, u, t1 in scenes():
         scan = bool(system.large_vector_field)
@@ -102,7 +107,12 @@ def main():
                     print(f"{scene:13s} saveat={n_saved:3d} rtol={tol:.0e} {name}: {row['steps']:5d} steps "
                           f"{row['ms']:8.2f} ms  final err {row['final_error']:.1e}  saved err "
                           f"{row['saved_error']:.1e}  (first call {row['compile_s']:.1f} s)", flush=True)
-    print(f"\nload average at end: {os.getloadavg()}")
+    load_end = os.getloadavg()
+    print(f"\nload average at end: {load_end}")
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "rkmk87_work_precision.json"
+    path.write_text(json.dumps(dict(load_average=dict(start=load_start, end=load_end), rows=rows), indent=1))
+    print(f"wrote {path}")
     return rows
 
 
