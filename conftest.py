@@ -23,10 +23,12 @@ import pytest
 import nhjax  # noqa: F401  (switches float64 on)
 
 # Many tests compile the same XLA programs through different Python callables; a
-# session-local persistent cache lets the second one load instead of compiling.
-# One directory per pytest-xdist worker: workers never read each other's half-written entries.
-_worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
-jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), f"nhjax-test-xla-cache-{_worker}"))
+# persistent cache lets the second one load instead of compiling. One directory for
+# both pytest-xdist workers, so that a program one worker stored (nhjax's program
+# cache, under this directory) is loaded by the other: nhjax writes its entries
+# atomically (a temporary file, then a rename); JAX's own entries are written in
+# place, and a half-written one that the other worker reads is a warning and a compile.
+jax.config.update("jax_compilation_cache_dir", os.path.join(tempfile.gettempdir(), "nhjax-test-xla-cache"))
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
 
 
