@@ -1,13 +1,14 @@
 """The notebooks run as tests through nbmake (``--nbmake`` in pyproject.toml's addopts):
 ``make test`` executes the quick ones, ``make test-all`` all of them. A notebook listed
 in SLOW (more than ~30 s in a fresh kernel: optimal control solves that compile for a
-minute or more) is marked ``slow``."""
+minute or more; the speed-vs-error study, whose solves the docs' guide and the
+benchmarks run) is marked ``slow``."""
 
 from pathlib import Path
 
 import pytest
 
-SLOW = {"01_falling_cat.ipynb", "02_spherical_robot.ipynb", "03_your_own_system.ipynb"}
+SLOW = {"01_falling_cat.ipynb", "02_spherical_robot.ipynb", "03_your_own_system.ipynb", "04_speed_vs_error.ipynb"}
 
 
 def pytest_collection_modifyitems(config, items):

@@ -102,6 +102,7 @@ def test_auto_mode_follows_the_number_of_differentiated_inputs(monkeypatch):
     np.testing.assert_allclose(g_many[1], g_rc[1], rtol=1e-11, atol=1e-11 * float(jnp.max(jnp.abs(g_rc[1]))))
 
 
+@pytest.mark.slow  # (event-time derivatives of impacts: test_bouncing_ball; the chart guard's stop: test_falling_cat; make test-all)
 def test_tangents_differentiate_a_guards_event_time():
     """A solve stopped at the chart's edge (sin theta = eps): theta_dot(t*) + t* in the initial
     tilt rate. "tangents" differentiates the event time t* (like the differentiated loop
@@ -188,6 +189,7 @@ def test_projected_steps_gradient():
     np.testing.assert_allclose(g_disc, fd, rtol=1e-5)
 
 
+@pytest.mark.slow  # (batched solves = one by one: test_batch; the discrete adjoint's gradient: the [41] case above; make test-all)
 def test_vmapped_gradients_equal_one_by_one():
     """A batch of gradients whose members take different numbers of steps."""
     cat = FallingCat()

@@ -15,6 +15,7 @@ from nhjax.scenes import FallingCat
 CTRL = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])
 
 
+@pytest.mark.slow  # (members of very different lengths equal their own solves: test_refilled_lanes_give_each_member_its_own_solve; tracked work: test_diagnostics_honest; make test-all)
 def test_batch_equals_single_including_very_different_step_counts():
     cat = FallingCat()
     # calm members and one with a fast twist (many more steps)

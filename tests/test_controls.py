@@ -86,6 +86,7 @@ def test_lq_multiple_shooting():
     np.testing.assert_allclose(dm.cost, 6.0, rtol=1e-8)
 
 
+@pytest.mark.slow  # (shooting derivatives against differences: test_direct_jacobian_by_tangents_equals_the_reverse_passes_and_differences; make test-all)
 def test_gradient_of_shooting_cost_matches_fd():
     ocp = lq_problem(T=2.0)
     param = controls.Fourier(3, 2.0, 1)
@@ -101,7 +102,7 @@ def test_gradient_of_shooting_cost_matches_fd():
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
 
 
-@pytest.mark.parametrize("kind", ["constant", "linear"])
+@pytest.mark.parametrize("kind", [pytest.param("constant", marks=pytest.mark.slow), "linear"])
 def test_shooting_jacobian_at_rest_is_the_exact_one(kind):
     """At zero inputs the double integrator stays at rest and the step control sees no
     error; the shooting solves' steps stop at the knots (controls.newton._step_controller),

@@ -182,7 +182,7 @@ def test_the_hamiltonian_flow_compiles_without_lapack_as_one_function():
     np.testing.assert_allclose(run(y0)[-1], jax.scipy.linalg.expm(jnp.asarray(A)) @ y0, rtol=0, atol=1e-10)
 
 
-@pytest.mark.parametrize("optimizer", ["sqp", "lbfgs"])
+@pytest.mark.parametrize("optimizer", ["sqp", pytest.param("lbfgs", marks=pytest.mark.slow)])
 def test_progress_line_ends_full_when_converged(capsys, optimizer):
     ocp = problem((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
     param = controls.PiecewiseLinear(4, 1.0, 1)

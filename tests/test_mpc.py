@@ -325,7 +325,7 @@ def _condensed(Q, q, A, B, c, e0, P, p, C, b):
     return 0.5 * (H + H.T), g, C @ G[N], b - C @ e[N], G, e
 
 
-@pytest.mark.parametrize("me", [0, 1, 2])
+@pytest.mark.parametrize("me", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_stage_qp_is_box_qp_on_the_condensed_problem(me):
     """Random stage-wise QPs (N = 8 intervals, 4 states, 2 inputs, random dynamics with
     an affine term and a start, positive semidefinite stage blocks, me terminal
@@ -420,6 +420,7 @@ class TorqueBias(AbstractSystem):
         return self.cat.vector_field(t, x, u + self.bias)
 
 
+@pytest.mark.slow  # (the observer's update: test_disturbance_observer_update_is_its_formula; make test-all)
 def test_disturbance_observer_removes_the_offset_of_a_torque_bias():
     """The regulator of the shape (receding horizon) against a plant whose actuators add
     a constant torque (0.2, -0.1) N m: without the observer the shape settles off its

@@ -178,6 +178,7 @@ print(json.dumps(dict(xs=np.asarray(tr.xs).tolist(), times=np.asarray(tr.impact_
 """
 
 
+@pytest.mark.slow  # (a warm start's import cost, in new processes; stored solves: test_a_new_process_loads_the_solve_instead_of_tracing_it; make test-all)
 def test_a_loaded_program_that_calls_lapack_runs_without_importing_scipy_linalg(tmp_path):
     """The impact solve's program calls LAPACK (its projections solve linear systems).
     A second process loads it and initializes jaxlib's LAPACK kernels from SciPy's

@@ -131,6 +131,7 @@ def test_rkmk87_dense_output_is_seventh_order():
     assert np.all(rate_plain < 7.0) and np.all(plains[-1] > 100 * ours[-1]), (plains, rate_plain)
 
 
+@pytest.mark.slow  # (RKMK87's order: test_rkmk87_is_eighth_order; its dense output: test_rkmk87_dense_output_is_seventh_order; make test-all)
 def test_rkmk87_tolerance_proportionality_and_dense_output(reference):
     """Adaptive RKMK87: every saved state (most of them dense output) on SO(3) and within a
     few hundred tolerances of the reference, the error falling with the tolerance; far
@@ -178,7 +179,8 @@ def test_long_run_stays_on_group():
     assert np.abs(Ra.T @ Ra - np.eye(3)).max() > 1e-6
 
 
-@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45(), nhjax.RKMK87()])
+# (RKMK87's steps on the group: test_rkmk87_is_eighth_order; make test-all)
+@pytest.mark.parametrize("solver", [nhjax.RKMK4(), nhjax.RKMK45(), pytest.param(nhjax.RKMK87(), marks=pytest.mark.slow)])
 def test_constant_velocity_flows_are_exact(solver):
     """For constant body velocity the exact flow is y0 exp(t v): RKMK reproduces it to round-off."""
     v3 = jnp.array([0.7, -1.3, 2.9])
