@@ -9,6 +9,7 @@ must also agree with central differences to the solve's accuracy.
 """
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -163,6 +164,48 @@ def test_lie_group_state_gradient():
     for a, b in zip(jax.tree_util.tree_leaves(g_disc), jax.tree_util.tree_leaves(g_rc)):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * float(np.max(np.abs(b))))
     assert float(jnp.max(jnp.abs(g_disc[0]))) > 1e-3  # the loss does depend on the torques
+
+
+@jax.custom_vjp
+def _sine(x):
+    """sin with a reverse-mode rule only: JAX refuses its forward-mode derivative."""
+    return jnp.sin(x)
+
+
+_sine.defvjp(lambda x: (jnp.sin(x), x), lambda x, g: (jnp.cos(x) * g,))
+
+
+class _SineFeedback(eqx.Module):
+    k: jax.Array
+
+    def __call__(self, t, x):
+        return -self.k * _sine(x[:1])
+
+
+def test_auto_takes_the_vjps_where_a_step_has_no_forward_mode_rule(monkeypatch):
+    """A control built on a custom_vjp function (no forward-mode rule): "auto" with
+    D = 1 <= max_tangents tries the tangents, meets JAX's refusal while tracing them
+    and forms the backward pass by VJPs instead, with the differentiated loop's
+    derivative; "tangents" asked for by name passes the refusal on."""
+    from nhjax.integrate import adjoint as A
+
+    used = []
+    monkeypatch.setattr(A, "_sequential_vjps", lambda *a, f=A._sequential_vjps: used.append("vjp") or f(*a))
+    osc = Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 2.0 * q @ q,
+                     force=lambda t, q, qd, u: u, control_dim=1)
+
+    def loss(k, adjoint):
+        return nhjax.simulate(osc, jnp.array([1.0, 0.0]), 2.0, control=_SineFeedback(k), rtol=1e-9, atol=1e-9,
+                              saveat=2, adjoint=adjoint, diagnostics=False).x_end[0]
+
+    k = jnp.asarray(0.7)
+    g_auto = jax.grad(lambda k: loss(k, nhjax.DiscreteAdjoint()))(k)
+    assert used == ["vjp"]
+    g_rc = jax.grad(lambda k: loss(k, RC))(k)
+    assert abs(float(g_rc)) > 1e-2
+    np.testing.assert_allclose(g_auto, g_rc, rtol=1e-10)
+    with pytest.raises(TypeError, match="custom_vjp"):
+        jax.grad(lambda k: loss(k, nhjax.DiscreteAdjoint(jacobians="tangents")))(k)
 
 
 @pytest.mark.slow  # (25 s; make test-all)
