@@ -255,6 +255,57 @@ _N_CONSTRAINTS: dict = {}
 _SHAPES_CHECKED: set = set()
 
 
+def _checked_on_disk(fn, args):
+    """(key, meta) of a structural answer about ``args`` that ``fn`` works out by tracing,
+    kept beside the stored programs (``nhjax._programs.store_meta``) under the key such a
+    program would have (its code, the code and constants of the objects in ``args``, the
+    shapes of their arrays): meta (output structure, [(shape, dtype)]) if an earlier
+    process stored it, else None; key None where the fingerprint cannot vouch for an
+    object (then the answer is traced in every process)."""
+    try:
+        key = _programs.program_key(f"{fn.__module__}.{fn.__qualname__}", fn, args)
+    except _programs.Uncacheable:
+        return None, None
+    return key, _programs.keyed_meta(key)
+
+
+def _check_shapes_traced(system, x0, running_cost, terminal_cost, terminal_constraints):
+    """The OCP's parts fit together: the state x0 fits the system (its vector field
+    returns the same structure), the costs are scalars, the constraints a 1-D array
+    (abstract evaluations: nothing runs)."""
+    u = jax.ShapeDtypeStruct((system.control_dim,), jnp.float64)  # abstract: no eager program
+    names = system.state_names
+    if names and getattr(x0, "shape", None) != (len(names),):
+        raise ProblemError(
+            f"x0 does not fit {type(system).__name__}: it has shape "
+            f"{getattr(x0, 'shape', None)}, the state is {names}"
+        )
+    try:
+        dx = jax.eval_shape(lambda u: system.vector_field(0.0, x0, u), u)
+    except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
+        raise ProblemError(f"x0 does not fit {type(system).__name__}: {e}") from e
+    if jtu.tree_structure(dx) != jtu.tree_structure(x0):
+        raise ProblemError(f"x0 does not fit {type(system).__name__}: its vector field "
+                           "returns a differently structured state")
+    L = jax.eval_shape(lambda u: running_cost(0.0, x0, u), u)
+    if L.shape != ():
+        raise ProblemError(f"running_cost(t, x, u) must return a scalar, got shape {L.shape}")
+    if terminal_cost is not None:
+        P = jax.eval_shape(lambda: terminal_cost(x0))
+        if P.shape != ():
+            raise ProblemError(f"terminal_cost(x) must return a scalar, got shape {P.shape}")
+    if terminal_constraints is not None:
+        c = jax.eval_shape(lambda: terminal_constraints(x0))
+        if len(c.shape) != 1:
+            raise ProblemError(f"terminal_constraints(x) must return a 1-D array, got shape {c.shape}")
+    del dx
+
+
+def _constraint_shape(terminal_constraints, x0):
+    """The shape and dtype of terminal_constraints(x0) (abstract: nothing runs)."""
+    return jax.eval_shape(lambda: terminal_constraints(x0))
+
+
 def _structure_key(tree):
     """A key of ``tree``'s structure for the caches of structural answers: the tree,
     its arrays' shapes and dtypes, and its other leaves themselves (a function that is
@@ -436,37 +487,16 @@ class OCP(eqx.Module):
                 return
         except TypeError:  # unhashable leaves or static fields: check every time
             key = None
-        self._check_shapes_traced()
+        # and once per structure across processes: a new process would otherwise trace
+        # the model again (0.7 s for the spherical robot, most of a warm OCP's set-up)
+        parts = (self.system, self.x0, self.running_cost, self.terminal_cost, self.terminal_constraints)
+        disk, passed = _checked_on_disk(_check_shapes_traced, parts)
+        if passed is None:
+            _check_shapes_traced(*parts)
+            if disk is not None:
+                _programs.store_meta(disk, None, [])
         if key is not None:
             _SHAPES_CHECKED.add(key)
-
-    def _check_shapes_traced(self):
-        u = jax.ShapeDtypeStruct((self.system.control_dim,), jnp.float64)  # abstract: no eager program
-        names = self.system.state_names
-        if names and getattr(self.x0, "shape", None) != (len(names),):
-            raise ProblemError(
-                f"x0 does not fit {type(self.system).__name__}: it has shape "
-                f"{getattr(self.x0, 'shape', None)}, the state is {names}"
-            )
-        try:
-            dx = jax.eval_shape(lambda u: self.system.vector_field(0.0, self.x0, u), u)
-        except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
-            raise ProblemError(f"x0 does not fit {type(self.system).__name__}: {e}") from e
-        if jtu.tree_structure(dx) != jtu.tree_structure(self.x0):
-            raise ProblemError(f"x0 does not fit {type(self.system).__name__}: its vector field "
-                               "returns a differently structured state")
-        L = jax.eval_shape(lambda u: self.running_cost(0.0, self.x0, u), u)
-        if L.shape != ():
-            raise ProblemError(f"running_cost(t, x, u) must return a scalar, got shape {L.shape}")
-        if self.terminal_cost is not None:
-            P = jax.eval_shape(lambda: self.terminal_cost(self.x0))
-            if P.shape != ():
-                raise ProblemError(f"terminal_cost(x) must return a scalar, got shape {P.shape}")
-        if self.terminal_constraints is not None:
-            c = jax.eval_shape(lambda: self.terminal_constraints(self.x0))
-            if len(c.shape) != 1:
-                raise ProblemError(f"terminal_constraints(x) must return a 1-D array, got shape {c.shape}")
-        del dx
 
     @property
     def n_constraints(self) -> int:
@@ -479,7 +509,14 @@ class OCP(eqx.Module):
             return _N_CONSTRAINTS[key]
         except (KeyError, TypeError):
             pass
-        m = jax.eval_shape(lambda: self.terminal_constraints(self.x0)).shape[0]
+        disk, meta = _checked_on_disk(_constraint_shape, (self.terminal_constraints, self.x0))
+        if meta is not None:
+            m = meta[1][0][0][0]
+        else:
+            c = _constraint_shape(self.terminal_constraints, self.x0)
+            m = c.shape[0]
+            if disk is not None:
+                _programs.store_meta(disk, None, [c])
         try:
             _N_CONSTRAINTS[key] = m
         except TypeError:  # unhashable static fields: no caching

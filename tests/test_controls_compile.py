@@ -66,6 +66,50 @@ def counts():
     return dict(TRACES), nsim.TRACES["solve"]
 
 
+class PartialTarget(eqx.Module):
+    """Three constraints: q(T), v(T) and q(T) + v(T) at their targets."""
+
+    x: jax.Array
+
+    def __call__(self, x):
+        return jnp.concatenate([x - self.x, (x - self.x).sum(keepdims=True)])
+
+
+def test_an_ocps_structural_checks_are_kept_beside_the_programs(tmp_path, monkeypatch):
+    """An OCP checks that its parts fit (abstract evaluations of the model, costs and
+    constraints) and counts its constraints once per structure; the answers are kept
+    with the stored programs, so that a new process (here: the memory cleared) neither
+    traces the model for them nor gets another structure's answer, and a bad problem
+    is still refused."""
+    from controls import problem as PR
+    from nhjax import _programs
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    traced = []
+    real = jax.eval_shape
+    monkeypatch.setattr(jax, "eval_shape", lambda *a, **k: traced.append(1) or real(*a, **k))
+
+    def new_process():  # only the disk remains
+        monkeypatch.setattr(PR, "_SHAPES_CHECKED", set())
+        monkeypatch.setattr(PR, "_N_CONSTRAINTS", {})
+        monkeypatch.setattr(_programs, "_META", {})
+        traced.clear()
+
+    new_process()
+    ocp = problem([0.0, 0.0], [1.0, 0.0], 1.0, 1.0, 2.0)
+    assert ocp.n_constraints == 2 and len(traced) >= 2  # shapes checked, constraints counted
+    new_process()
+    again = problem([0.3, -1.0], [2.0, 0.5], 2.0, 3.0, 0.5)  # other numbers, same structure
+    assert again.n_constraints == 2 and traced == []
+    new_process()
+    three = controls.OCP(ScaledIntegrator(jnp.asarray(1.0)), jnp.zeros(2), 1.0, running_cost=WeightedEffort(
+        jnp.asarray(1.0)), terminal_constraints=PartialTarget(jnp.ones(2)))
+    assert three.n_constraints == 3 and traced  # another structure: its own answer
+    new_process()
+    with pytest.raises(controls.ProblemError, match="x0 does not fit ScaledIntegrator"):
+        problem([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], 1.0, 1.0, 2.0)
+
+
 @pytest.mark.slow  # (stored solver programs: test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them; the LQ optimum: test_controls.py::test_lq_both_methods_reach_the_analytic_optimum; make test-all)
 def test_new_numbers_do_not_retrace_and_reach_their_own_optimum():
     first = ((0.0, 0.0), (1.0, 0.0), 1.0, 1.0, 1.0)
