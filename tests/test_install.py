@@ -104,14 +104,15 @@ def installed(tmp_path_factory):
                    check=True, env=_clean_env(), cwd=tmp)
     (wheel,) = wheels.glob("nhjax-*.whl")
     venv = tmp / "venv"
-    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    # a venv without its own pip (bootstrapping one took 8 s); the running pip installs into it
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     py = venv / "bin" / "python"
     site = subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                           check=True, capture_output=True, text=True).stdout.strip()
     # the running interpreter's packages (jax, diffrax, ...), added after the venv's own
     (Path(site) / "_shared_deps.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    subprocess.run([str(py), "-m", "pip", "install", "--no-deps", "-q", "--disable-pip-version-check", str(wheel)],
-                   check=True, env=_clean_env())
+    subprocess.run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "-q",
+                    "--disable-pip-version-check", str(wheel)], check=True, env=_clean_env())
     work = tmp / "work"
     work.mkdir()
     where = subprocess.run([str(py), "-c", "import nhjax, controls, nhjax.experiments as e; "
