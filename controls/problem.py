@@ -255,24 +255,31 @@ _N_CONSTRAINTS: dict = {}
 _SHAPES_CHECKED: set = set()
 
 
-def _checked_on_disk(fn, args):
-    """(key, meta) of a structural answer about ``args`` that ``fn`` works out by tracing,
-    kept beside the stored programs (``nhjax._programs.store_meta``) under the key such a
-    program would have (its code, the code and constants of the objects in ``args``, the
-    shapes of their arrays): meta (output structure, [(shape, dtype)]) if an earlier
-    process stored it, else None; key None where the fingerprint cannot vouch for an
-    object (then the answer is traced in every process)."""
+def _structural_answer(fn, args):
+    """The abstract outputs [(shape, dtype), ...] of ``fn(*args)``, a structural question
+    answered by tracing (``fn`` returns a list of ``jax.ShapeDtypeStruct``, or raises),
+    kept beside the stored programs (``nhjax._programs.store_meta``) under the key a
+    program of the same structure would have (its code, the code and constants of the
+    objects in ``args``, the shapes of their arrays): a new process reads the answer
+    instead of tracing the model again. Where the fingerprint cannot vouch for an
+    object, every process traces."""
     try:
         key = _programs.program_key(f"{fn.__module__}.{fn.__qualname__}", fn, args)
     except _programs.Uncacheable:
-        return None, None
-    return key, _programs.keyed_meta(key)
+        key = None
+    meta = None if key is None else _programs.keyed_meta(key)
+    if meta is not None:
+        return meta[1]
+    avals = fn(*args)
+    if key is not None:
+        _programs.store_meta(key, None, avals)
+    return [(tuple(a.shape), np.dtype(a.dtype).str) for a in avals]
 
 
 def _check_shapes_traced(system, x0, running_cost, terminal_cost, terminal_constraints):
     """The OCP's parts fit together: the state x0 fits the system (its vector field
     returns the same structure), the costs are scalars, the constraints a 1-D array
-    (abstract evaluations: nothing runs)."""
+    (abstract evaluations: nothing runs). Returns no outputs ([]) or raises."""
     u = jax.ShapeDtypeStruct((system.control_dim,), jnp.float64)  # abstract: no eager program
     names = system.state_names
     if names and getattr(x0, "shape", None) != (len(names),):
@@ -299,11 +306,12 @@ def _check_shapes_traced(system, x0, running_cost, terminal_cost, terminal_const
         if len(c.shape) != 1:
             raise ProblemError(f"terminal_constraints(x) must return a 1-D array, got shape {c.shape}")
     del dx
+    return []
 
 
 def _constraint_shape(terminal_constraints, x0):
-    """The shape and dtype of terminal_constraints(x0) (abstract: nothing runs)."""
-    return jax.eval_shape(lambda: terminal_constraints(x0))
+    """[the shape and dtype of terminal_constraints(x0)] (abstract: nothing runs)."""
+    return [jax.eval_shape(lambda: terminal_constraints(x0))]
 
 
 def _structure_key(tree):
@@ -487,14 +495,10 @@ class OCP(eqx.Module):
                 return
         except TypeError:  # unhashable leaves or static fields: check every time
             key = None
-        # and once per structure across processes: a new process would otherwise trace
-        # the model again (0.7 s for the spherical robot, most of a warm OCP's set-up)
-        parts = (self.system, self.x0, self.running_cost, self.terminal_cost, self.terminal_constraints)
-        disk, passed = _checked_on_disk(_check_shapes_traced, parts)
-        if passed is None:
-            _check_shapes_traced(*parts)
-            if disk is not None:
-                _programs.store_meta(disk, None, [])
+        # (and once per structure across processes: for a large model the trace is most
+        # of a warm OCP's set-up)
+        _structural_answer(_check_shapes_traced, (self.system, self.x0, self.running_cost, self.terminal_cost,
+                                                  self.terminal_constraints))
         if key is not None:
             _SHAPES_CHECKED.add(key)
 
@@ -509,14 +513,8 @@ class OCP(eqx.Module):
             return _N_CONSTRAINTS[key]
         except (KeyError, TypeError):
             pass
-        disk, meta = _checked_on_disk(_constraint_shape, (self.terminal_constraints, self.x0))
-        if meta is not None:
-            m = meta[1][0][0][0]
-        else:
-            c = _constraint_shape(self.terminal_constraints, self.x0)
-            m = c.shape[0]
-            if disk is not None:
-                _programs.store_meta(disk, None, [c])
+        [(shape, _)] = _structural_answer(_constraint_shape, (self.terminal_constraints, self.x0))
+        m = shape[0]
         try:
             _N_CONSTRAINTS[key] = m
         except TypeError:  # unhashable static fields: no caching

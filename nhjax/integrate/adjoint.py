@@ -104,8 +104,8 @@ class DiscreteAdjoint(eqx.Module):
         forward / reverse mode, and run the recursion as matrix-vector products.
         "auto": "tangents" while D <= ``max_tangents`` and the step has
         forward-mode rules (a custom_vjp function inside the control or the
-        system has none: found while tracing the tangents), else "vjp" (``benchmarks/batch_throughput.py`` times
-        every mode against a forward solve).
+        system has none: found while tracing the tangents), else "vjp"
+        (``benchmarks/batch_throughput.py`` times every mode against a forward solve).
     max_tangents : the largest D for which "auto" picks "tangents".
     chunk : steps whose Jacobians are evaluated together in one vectorised call
         ("forward"/"reverse"; memory: chunk x n x (n + D) floats).
@@ -189,8 +189,8 @@ def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
             # "auto" on a step without a forward-mode rule (a custom_vjp function in a
             # user's control or system, a primitive JAX differentiates in reverse
             # only): the trace of the tangents stops there, and the VJPs take over.
-            # (Trying is cheaper than asking first: tracing a step's JVP to find out
-            # took 3.4 s of a 15 s trace on the spherical robot.)
+            # (Trying is cheaper than asking first, which meant tracing a step's JVP
+            # in every tangents-mode solve: for a large vector field, seconds.)
             if adjoint.jacobians != "auto" or (isinstance(e, TypeError) and "custom_vjp" not in str(e)):
                 raise
             mode = "vjp"
@@ -202,7 +202,8 @@ def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
 def _mode(adjoint: DiscreteAdjoint, diff, perturbed) -> str:
     """The way of forming the backward pass (``DiscreteAdjoint.jacobians``) for this
     solve, chosen in the forward pass ("auto": tangents for at most ``max_tangents``
-    differentiated numbers, if the steps have forward-mode rules)."""
+    differentiated numbers; the forward pass takes the VJPs instead where the steps
+    have no forward-mode rule)."""
     if adjoint.jacobians != "auto":
         return adjoint.jacobians
     D = sum(jnp.size(a) for a in jtu.tree_leaves(eqx.filter(diff, perturbed)))
