@@ -1044,16 +1044,20 @@ def _drift_program(plant, ts, xs):
     return _constraint_drift(plant, ts, xs)
 
 
-def _key_data(key, fsd, msd, owner):
-    """The raw data of ``key`` (default: that of ``jax.random.key(0)``, handed over from
-    the host: the default key is only drawn from when no noise is asked for, and
-    ``jax.random.key`` is two eager programs, paid in every new process)."""
+def _key_data(key, fsd, msd, owner, members=None):
+    """The raw data of ``key`` (``members``: of a (members,) array of keys). Default:
+    that of ``jax.random.key(0)`` for every member, handed over from the host: without
+    noise the draws are multiplied by zero, so any key serves, and ``jax.random.key``
+    and ``jax.random.split`` are eager programs, paid in every new process."""
     if key is None:
         if np.any(fsd > 0) or np.any(msd > 0):
-            raise MPCError(f"{owner}: noise needs a PRNG key: pass key=jax.random.key(seed)")
+            raise MPCError(f"{owner}: noise needs a PRNG key: pass key=jax.random.key(seed)" if members is None else
+                           f"{owner}: noise needs one PRNG key per member: keys=jax.random.split(key, {members})")
         if jax.config.jax_default_prng_impl == "threefry2x32":  # key(0)'s data: (0, 0)
-            return jax.device_put(np.zeros(2, np.uint32))
-        key = jax.random.key(0)
+            data = np.zeros(2, np.uint32)
+        else:
+            data = np.asarray(jax.random.key_data(jax.random.key(0)))
+        return jax.device_put(data if members is None else np.broadcast_to(data, (members, *data.shape)).copy())
     return jax.random.key_data(key)
 
 
@@ -1112,12 +1116,9 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
     B = X.shape[0]
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
-    if keys is None:
-        if np.any(fsd > 0) or np.any(msd > 0):
-            raise MPCError(f"{owner}: noise needs one PRNG key per member: keys=jax.random.split(key, {B})")
-        keys = jax.random.split(jax.random.key(0), B)
-    if jnp.shape(keys)[:1] != (B,):
+    if keys is not None and jnp.shape(keys)[:1] != (B,):
         raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
+    key_data = _key_data(keys, fsd, msd, owner, members=B)
     push_t, push_dx = _pushes(pushes, n, (B,), owner)
     if push_t.shape[0] != B:
         raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
@@ -1126,6 +1127,6 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members
         mpc = _with_qp(mpc, "riccati")
     xs, ys, us, status, J, drift = _batch_program(
-        mpc, plant, plant_axis, jnp.asarray(X), plan0.u, t0a, jax.random.key_data(keys), jnp.asarray(push_t),
+        mpc, plant, plant_axis, jnp.asarray(X), plan0.u, t0a, key_data, jnp.asarray(push_t),
         jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps, min(group, B))
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

@@ -48,10 +48,12 @@ Success: the plant's final psi within 1 degree of -pi. Writes ``DIR/mpc_cat.json
 (``success_rate``, ``final_attitude_error_deg_max`` over the successful members,
 ``batch_seconds``, ``sequential_seconds`` and how they were measured, effort, fallbacks,
 load average) and ``DIR/mpc_cat.png`` (histograms of the final attitude error, the
-effort and the final shape error).
+effort and the final shape error) and ``DIR/mpc_cat.gif`` (the closed loop of the member
+that lands farthest from the target turn, drawn with its own plant's cylinders;
+``--no-animation`` skips it).
 
 Usage: nhjax run mpc_cat [--out DIR] [--members 256] [--sequential 32] [--bound 1] [--mode rti]
-                        [--disturbance-gain 0.5]
+                        [--disturbance-gain 0.5] [--no-animation]
 """
 
 import argparse
@@ -171,6 +173,7 @@ def main():
     ap.add_argument("--mode", choices=("rti", "converged"), default=MODE, help="MPC mode (default rti)")
     ap.add_argument("--disturbance-gain", type=float, default=DISTURBANCE_GAIN,
                     help=f"the disturbance observer's gain in [0, 1] (0: off; default {DISTURBANCE_GAIN:g})")
+    ap.add_argument("--no-animation", action="store_true", help="skip the GIF")
     a = ap.parse_args()
     if a.members < 1 or not 1 <= a.sequential <= a.members:
         ap.error("--members >= 1 and 1 <= --sequential <= --members")
@@ -252,7 +255,18 @@ def main():
                 load_average_end=list(load_end))
     (out / "mpc_cat.json").write_text(json.dumps(info, indent=1))
     figure(err_deg, effort, shape_err, out / "mpc_cat.png")
-    print(f"load average {load_start[0]:.2f} -> {load_end[0]:.2f}; wrote {out}/mpc_cat.json and .png")
+    if not a.no_animation:
+        from nhjax import plotting
+
+        worst = int(np.argmax(err_deg))
+        ts = np.asarray(batch.trajectory.ts)
+        ts = ts[worst] if ts.ndim == 2 else ts
+        plotting.somersault_animation(cats[worst], ts, np.asarray(batch.trajectory.xs[worst])[:, :3],
+                                      out / "mpc_cat.gif", frames=40)
+        print(f"animation: member {worst}, the farthest from the target turn "
+              f"(|psi(T) + pi| = {err_deg[worst]:.3f} deg)")
+    print(f"load average {load_start[0]:.2f} -> {load_end[0]:.2f}; wrote {out}/mpc_cat.json, .png"
+          + ("" if a.no_animation else " and .gif"))
 
 
 if __name__ == "__main__":

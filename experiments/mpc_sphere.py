@@ -25,10 +25,11 @@ Writes ``DIR/mpc_sphere.json`` (``period_ms_median``, ``period_ms_max``,
 ``casadi_period_ms_median``, ``closed_loop_cost``, ``casadi_closed_loop_cost``,
 ``tracking_error_after_push_m``: the largest error from 2 s after the push to the
 end, ``load_average``, and more: the compile time, fallbacks, the time the error
-takes to come back under 2 cm) and ``DIR/mpc_sphere.png`` (path, tracking error,
-torques, solve time per period).
+takes to come back under 2 cm), ``DIR/mpc_sphere.png`` (path, tracking error,
+torques, solve time per period) and ``DIR/mpc_sphere.gif`` (the robot seen from
+above chasing the target, the push drawn as an arrow; ``--no-animation`` skips it).
 
-Usage: nhjax run mpc_sphere [--out DIR] [--laps 1] [--no-ipopt]
+Usage: nhjax run mpc_sphere [--out DIR] [--laps 1] [--no-ipopt] [--no-animation]
 """
 
 import argparse
@@ -139,11 +140,71 @@ def figure(r, ip, path):
     fig.savefig(path, dpi=110)
 
 
+def animation(r, robot, path, frames=100, fps=10):
+    """GIF of the closed loop seen from above: the shell (a circle of radius Rs about
+    the contact point), its trail, the moving target on its figure-eight, the top's
+    centre of mass (the offset R_top c projected on the plane, drawn at Rs/|c| scale so
+    that its tilt shows) and, for a second after the push, an arrow from the shell's
+    centre along the velocity change."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.figure import Figure
+    from matplotlib.patches import Circle
+
+    ts, xs, ref, err = r["ts"], r["xs"], r["ref"], r["err"]
+    xy = xs[:, 15:17]
+    c = np.asarray(robot.c)
+    # rows alpha, beta of R_top (state 9:12, 12:15): the plane components of R_top c
+    bob = np.stack([xs[:, 9:12] @ c, xs[:, 12:15] @ c], 1) * (float(robot.Rs) / max(np.linalg.norm(c), 1e-12))
+    Rs = float(robot.Rs)
+    k_push = int(np.searchsorted(ts, PUSH_TIME))
+    dv = np.asarray(PUSH_DV, float)
+    # the push's velocity change along the top's x axis at that moment, in the plane
+    alpha, beta = xs[k_push, 9:12], xs[k_push, 12:15]
+    push_dir = np.array([alpha[0] * dv[0] + alpha[1] * dv[1], beta[0] * dv[0] + beta[1] * dv[1]])
+    push_dir = push_dir / max(np.linalg.norm(push_dir), 1e-12)
+    sel = np.unique(np.linspace(0, len(ts) - 1, frames).astype(int))
+
+    fig = Figure(figsize=(5.2, 4.2))
+    a = fig.add_subplot()
+    pts = np.concatenate([xy, ref])
+    lo, hi = pts.min(0) - 1.4 * Rs, pts.max(0) + 1.4 * Rs
+    a.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), xlabel="x [m]", ylabel="y [m]", aspect="equal")
+    a.plot(ref[:, 0], ref[:, 1], "k--", lw=0.8)
+    trail, = a.plot([], [], "C0", lw=1.2)
+    target, = a.plot([], [], "r*", ms=10)
+    shell = Circle(tuple(xy[0]), Rs, fill=False, color="k")
+    a.add_patch(shell)
+    top, = a.plot([], [], "C1-o", ms=4, lw=2)
+    arrow = a.annotate("", xy=(0, 0), xytext=(0, 0), arrowprops=dict(arrowstyle="-|>", color="r", lw=2),
+                       annotation_clip=False)
+    title = a.set_title("")
+    a.text(0.02, 0.02, "red star: target r(t); orange: top's centre of mass; red arrow: push", fontsize=7, transform=a.transAxes)
+
+    def draw(i):
+        k = sel[i]
+        trail.set_data(xy[:k + 1, 0], xy[:k + 1, 1])
+        target.set_data([ref[k, 0]], [ref[k, 1]])
+        shell.center = tuple(xy[k])
+        top.set_data([xy[k, 0], xy[k, 0] + bob[k, 0]], [xy[k, 1], xy[k, 1] + bob[k, 1]])
+        pushing = k_push <= k and ts[k] < PUSH_TIME + 1.0  # shown for a second
+        arrow.set_visible(bool(pushing))
+        if pushing:
+            arrow.xy = tuple(xy[k] + Rs * push_dir)
+            arrow.set_position(tuple(xy[k]))
+        title.set_text(f"t = {ts[k]:5.2f} s   error {err[k] * 100:5.1f} cm" + ("   push" if pushing else ""))
+
+    FuncAnimation(fig, draw, frames=len(sel)).save(path, writer=PillowWriter(fps=fps), dpi=72)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="mpc_sphere", help="folder for the outputs (default: ./mpc_sphere)")
     ap.add_argument("--laps", type=float, default=1.0, help="laps of the figure-eight (20 s each)")
     ap.add_argument("--no-ipopt", action="store_true", help="skip the CasADi + IPOPT peer")
+    ap.add_argument("--no-animation", action="store_true", help="skip the GIF")
     a = ap.parse_args()
     if not a.laps > PUSH_TIME / 20.0 + 0.1:
         ap.error("--laps must run past the push (more than 0.35)")
@@ -188,7 +249,10 @@ def main():
                 load_average_end=list(load_end))
     (out / "mpc_sphere.json").write_text(json.dumps(info, indent=1))
     figure(r, ip, out / "mpc_sphere.png")
-    print(f"load average {load_start[0]:.2f} -> {load_end[0]:.2f}; wrote {out}/mpc_sphere.json and .png")
+    if not a.no_animation:
+        animation(r, ShellWithTop(), out / "mpc_sphere.gif")
+    print(f"load average {load_start[0]:.2f} -> {load_end[0]:.2f}; wrote {out}/mpc_sphere.json, .png"
+          + ("" if a.no_animation else " and .gif"))
 
 
 if __name__ == "__main__":
