@@ -13,6 +13,12 @@ BENCHMARKS = ["cat_work_precision", "scene_work_precision", "batch_throughput", 
 
 if __name__ == "__main__":
     chosen = sys.argv[1:] or BENCHMARKS
+    unknown = [name for name in chosen if name not in BENCHMARKS]
+    if unknown:
+        raise SystemExit(f"nhjax bench: unknown benchmarks {unknown}; known: {', '.join(BENCHMARKS)}")
     for name in chosen:
         print(f"=== {name}")
-        runpy.run_path(str(HERE / f"{name}.py"), run_name="__main__")
+        # each script reads its own options from sys.argv: none here (its full run), not
+        # the names of the benchmarks chosen
+        sys.argv = [str(HERE / f"{name}.py")]
+        runpy.run_path(sys.argv[0], run_name="__main__")
