@@ -9,6 +9,11 @@ problem once and reuses it for its next points (an OC solve compiles for tens of
 seconds; grouping also amortizes the per-task overhead). A lost worker's tasks are
 rescheduled by Dask; ``retries`` reruns a task that raised outside ``fn``.
 
+``closed_loop_batch_on_client(client, mpc, plant, x0s, periods, ...)`` runs
+``controls.closed_loop_batch`` in chunks of members on the workers and joins the
+chunks into one ``ClosedLoop`` in member order (issue 42: a thousand closed loops and
+more).
+
 ``somersault_turns`` is the example from the issue: the velocity-controlled falling
 cat's optimal somersault for each turn angle, by Pontryagin shooting (continuation
 from the fixed-theta loop), as a grid sweep whose workers each solve a sub-grid in
@@ -26,7 +31,7 @@ import traceback
 import uuid
 from typing import Any, Callable
 
-__all__ = ["GridResult", "map_on_client", "somersault_turns"]
+__all__ = ["GridResult", "closed_loop_batch_on_client", "map_on_client", "somersault_turns"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,3 +182,107 @@ def somersault_turns(client, turns, *, theta0=0.6, T=2.0, points_per_task=None, 
 
     return map_on_client(client, functools.partial(_somersault_turns_batch, theta0=theta0, T=T), turns,
                          points_per_task=points_per_task, progress=progress, batched=True)
+
+
+def _closed_loop_chunk(index, mpc, plant, X, periods, kwargs, on_chunk):
+    """On a worker: one chunk's ``closed_loop_batch``, as host arrays (cheap to send)."""
+    import jax
+
+    from .mpc import closed_loop_batch
+
+    if on_chunk is not None:
+        on_chunk(index)
+    return jax.device_get(closed_loop_batch(mpc, plant, X, periods, **kwargs))
+
+
+def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None,
+                                pushes=None, force_noise=0.0, measurement_noise=0.0, keys=None,
+                                plant_substeps=None, group=4, chunk_members=None, retries=2, progress=False,
+                                on_chunk=None):
+    """``controls.closed_loop_batch`` with its members split into chunks that run on the
+    workers of a ``dask.distributed.Client``, joined into one ``ClosedLoop`` (arrays
+    with a leading member axis, members in order).
+
+    Every argument from ``mpc`` to ``group`` is ``closed_loop_batch``'s and is checked
+    here, before any task is sent (``MPCError`` as there). Each member's loop does not
+    depend on the others (``closed_loop_batch`` runs them side by side), so the result
+    equals the local ``closed_loop_batch`` of the same members (to round-off;
+    tests/test_mpc.py checks it on a threads-only cluster, tests/test_distributed.py on
+    worker processes).
+
+    client : a ``dask.distributed.Client`` (a LocalCluster's or a real cluster's; every
+        worker needs nhjax and controls installed, the same version).
+    chunk_members : members per task (default: the batch split into two chunks per
+        worker, rounded up to a multiple of ``group``). The last chunk is padded with
+        copies of its first member (dropped from the result), so every task has the same
+        shapes and a worker compiles the chunk program once.
+    retries : reruns of a chunk whose task raised (a lost worker's chunks are
+        rescheduled by Dask in any case).
+    progress : a tqdm bar over members, advanced as chunks come back.
+    on_chunk : optional callable ``on_chunk(index)`` run on the worker at the start of
+        every attempt of chunk ``index``.
+    """
+    import jax
+    import jax.tree_util as jtu
+    import numpy as np
+    from dask.distributed import as_completed
+
+    from .mpc import MPCError, _batch_inputs
+
+    owner = "closed_loop_batch_on_client"
+    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx = _batch_inputs(
+        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner)
+    B = X.shape[0]
+    if chunk_members is None:
+        workers = max(1, len(client.scheduler_info().get("workers", {})))
+        chunk_members = -(-B // (2 * workers))
+        chunk_members = -(-chunk_members // group) * group
+    elif isinstance(chunk_members, bool) or not isinstance(chunk_members, (int, np.integer)) or chunk_members < 1:
+        raise MPCError(f"{owner}: chunk_members must be an integer >= 1 (members per task), got {chunk_members!r}")
+    if isinstance(retries, bool) or not isinstance(retries, (int, np.integer)) or retries < 0:
+        raise MPCError(f"{owner}: retries must be an integer >= 0, got {retries!r}")
+    chunk_members = int(chunk_members)
+    n_chunks = -(-B // chunk_members)
+    pad = n_chunks * chunk_members - B
+
+    def padded(a):
+        a = np.asarray(a)
+        return np.concatenate([a, np.repeat(a[:1], pad, axis=0)]) if pad else a
+
+    def chunk(a, i):
+        return a[i * chunk_members:(i + 1) * chunk_members]
+
+    members = dict(X=padded(X), keys=padded(jax.device_get(key_data)), times=padded(push_t), kicks=padded(push_dx))
+    plant_arrays = None
+    if plant_axis == 0:
+        import equinox as eqx
+
+        arrays, static = eqx.partition(plant, eqx.is_array)
+        plant_arrays = jtu.tree_map(padded, jax.device_get(arrays))
+    shared = dict(in_axes=in_axes, t0=t0, u_guess=u_guess, force_noise=fsd, measurement_noise=msd,
+                  plant_substeps=plant_substeps, group=min(group, chunk_members))
+    tag = uuid.uuid4().hex[:8]
+    futures = []
+    for i in range(n_chunks):
+        part = plant if plant_arrays is None else eqx.combine(jtu.tree_map(lambda a: chunk(a, i), plant_arrays),
+                                                               static)
+        kwargs = dict(shared, keys=chunk(members["keys"], i),
+                      pushes=(chunk(members["times"], i), chunk(members["kicks"], i)))
+        futures.append(client.submit(_closed_loop_chunk, i, mpc, part, chunk(members["X"], i), periods, kwargs,
+                                     on_chunk, key=f"controls-loops-{tag}-{i}", retries=int(retries), pure=False))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=B, desc="closed loops (dask)", unit="loop")
+    parts = [None] * n_chunks
+    index = {f.key: i for i, f in enumerate(futures)}
+    for fut in as_completed(futures):
+        i = index[fut.key]
+        parts[i] = fut.result()
+        if bar is not None:
+            bar.update(min(chunk_members, B - i * chunk_members))
+    if bar is not None:
+        bar.close()
+    joined = jtu.tree_map(lambda *a: np.concatenate([np.asarray(v) for v in a])[:B], *parts)
+    return jax.device_put(joined)

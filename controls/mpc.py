@@ -1061,6 +1061,40 @@ def _key_data(key, fsd, msd, owner, members=None):
     return jax.random.key_data(key)
 
 
+def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps,
+                  group, owner):
+    """``closed_loop_batch``'s arguments checked (MPCError before any numerics) and put in
+    the program's form: (plant_axis, periods, plant_substeps, group, X (B, n) numpy, force
+    and measurement noise levels, the keys' raw data (B, ...), pushes' times (B, P) and
+    increments (B, P, n))."""
+    in_axes = dict(in_axes or {})
+    unknown = set(in_axes) - {"plant"}
+    if unknown:
+        raise MPCError(f"{owner}: in_axes keys must be among ('plant',), got {sorted(unknown)}")
+    plant_axis = in_axes.get("plant")
+    if plant_axis not in (None, 0):
+        raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
+    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0)
+    with as_problem_error():
+        group = V.integer("group", group, minimum=1, owner=owner)
+    n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
+    X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
+    if X.ndim != 2 or X.shape[1] != n:
+        raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
+    if not np.all(np.isfinite(X)):
+        rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
+        raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
+    B = X.shape[0]
+    fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
+    if keys is not None and jnp.shape(keys)[:1] != (B,):
+        raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
+    key_data = _key_data(keys, fsd, msd, owner, members=B)
+    push_t, push_dx = _pushes(pushes, n, (B,), owner)
+    if push_t.shape[0] != B:
+        raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
+    return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx
+
+
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,
                       force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None,
                       group=4) -> ClosedLoop:
@@ -1094,34 +1128,13 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     QP's interior-point loop are ``lax.while_loop``s under ``vmap``: each member stops
     iterating (its values frozen) when it converges and its group's loop ends when the
     group's slowest member does. Per-member statuses say which
-    members converged or fell back. For more members than one process holds, split
-    ``x0s`` and map the chunks over a Dask client."""
+    members converged or fell back. For more members than one process holds:
+    ``controls.distributed.closed_loop_batch_on_client`` (chunks of members on the
+    workers of a Dask cluster, joined into one result)."""
     owner = "closed_loop_batch"
-    in_axes = dict(in_axes or {})
-    unknown = set(in_axes) - {"plant"}
-    if unknown:
-        raise MPCError(f"{owner}: in_axes keys must be among ('plant',), got {sorted(unknown)}")
-    plant_axis = in_axes.get("plant")
-    if plant_axis not in (None, 0):
-        raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
-    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0)
-    with as_problem_error():
-        group = V.integer("group", group, minimum=1, owner=owner)
-    n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
-    X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
-    if X.ndim != 2 or X.shape[1] != n:
-        raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
-    if not np.all(np.isfinite(X)):
-        rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
-        raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
+    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx = _batch_inputs(
+        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner)
     B = X.shape[0]
-    fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
-    if keys is not None and jnp.shape(keys)[:1] != (B,):
-        raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
-    key_data = _key_data(keys, fsd, msd, owner, members=B)
-    push_t, push_dx = _pushes(pushes, n, (B,), owner)
-    if push_t.shape[0] != B:
-        raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
     plan0 = mpc.init(X[0], u_guess, t0)
     t0a = host_array(t0)
     if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members

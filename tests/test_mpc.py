@@ -13,6 +13,9 @@ disturbance observer's update against its formula, and its offset-free property 
 a plant with a constant torque bias.
 """
 
+import functools
+from pathlib import Path
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -247,6 +250,21 @@ def test_bad_input_gets_a_named_error_before_numerics():
     assert issubclass(MPCError, ProblemError) and issubclass(MPCError, ValueError)
 
 
+def _batch_members(rows):
+    """The batch tests' members (three kinds: other starts, plant inertias, a push on
+    member 1, noise keys), in the order ``rows`` picks them."""
+    rows = np.asarray(rows)
+    scales = np.array([1.0, 1.1, 0.9])[rows]
+    plants = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[FallingCat(I1=CAT.I1 * s) for s in scales])
+    X = np.asarray(X0) + np.array([[0.0, 0, 0, 0, 0], [0.05, -0.1, 0, 0, 0.2], [-0.1, 0.05, 0, 0.3, 0]])[rows]
+    kicks = np.zeros((3, 1, 5))
+    kicks[1, 0, 3] = 1.0
+    times = np.full((3, 1), 0.3)
+    keys = jax.random.key_data(jax.random.split(jax.random.key(7), 3))
+    noise = dict(force_noise=0.01, measurement_noise=1e-3)
+    return scales, plants, X, times[rows], kicks[rows], keys[rows], noise
+
+
 def test_batch_member_is_the_loop_run_alone():
     """Three members with other starts, plant inertias (in_axes plant), pushes and
     noise keys: each member's inputs, states, statuses and cost are those of
@@ -256,14 +274,8 @@ def test_batch_member_is_the_loop_run_alone():
     group): the two solvers' steps agree through 25 closed-loop periods."""
     assert _regulator()[0]._qp_kind() == "dense"
     mpc, _ = _regulator()
-    scales = np.array([1.0, 1.1, 0.9])
-    plants = jax.tree_util.tree_map(lambda *a: jnp.stack(a), *[FallingCat(I1=CAT.I1 * s) for s in scales])
-    X = np.asarray(X0) + np.array([[0.0, 0, 0, 0, 0], [0.05, -0.1, 0, 0, 0.2], [-0.1, 0.05, 0, 0.3, 0]])
-    kicks = np.zeros((3, 1, 5))
-    kicks[1, 0, 3] = 1.0
-    times = np.full((3, 1), 0.3)
-    keys = jax.random.split(jax.random.key(7), 3)
-    noise = dict(force_noise=0.01, measurement_noise=1e-3)
+    scales, plants, X, times, kicks, keys, noise = _batch_members([0, 1, 2])
+    keys = jax.random.wrap_key_data(keys)  # (typed keys here, their raw data in the Dask test)
     batch = closed_loop_batch(mpc, plants, X, PERIODS, in_axes={"plant": 0}, pushes=(times, kicks), keys=keys,
                               group=2, **noise)
     for i in (1, 2):
@@ -274,6 +286,46 @@ def test_batch_member_is_the_loop_run_alone():
                                    atol=1e-10)
         np.testing.assert_array_equal(np.asarray(batch.status.fallback[i]), np.asarray(alone.status.fallback))
         assert abs(float(batch.cost[i]) - float(alone.cost)) < 1e-10
+
+
+def _mark(folder, index):
+    """A chunk hook (runs on the worker): leaves a file named by the chunk's index."""
+    (Path(folder) / f"chunk-{index}").touch()
+
+
+def test_batch_on_a_dask_client_is_the_local_batch_member_by_member(tmp_path):
+    """closed_loop_batch_on_client on a threads-only LocalCluster: five members (the
+    three of the batch test, two of them twice) in chunks of three, the last chunk
+    padded, come back joined in member order, each equal to the local batch's member
+    (the chunks' program is the local batch's own: the same three members' shapes).
+    Bad input is refused before any task is sent."""
+    pytest.importorskip("dask.distributed")
+    from dask.distributed import Client, LocalCluster
+
+    from controls.distributed import closed_loop_batch_on_client
+
+    mpc, _ = _regulator()
+    _, plants, X, times, kicks, keys, noise = _batch_members([0, 1, 2])
+    local = closed_loop_batch(mpc, plants, X, PERIODS, in_axes={"plant": 0}, pushes=(times, kicks), keys=keys,
+                              group=2, **noise)
+    rows = [0, 1, 2, 2, 0]
+    _, plants5, X5, times5, kicks5, keys5, _ = _batch_members(rows)
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        with pytest.raises(MPCError, match="keys"):
+            closed_loop_batch_on_client(client, mpc, plants5, X5, PERIODS, in_axes={"plant": 0}, **noise)
+        with pytest.raises(MPCError, match="chunk_members"):
+            closed_loop_batch_on_client(client, mpc, plants5, X5, PERIODS, in_axes={"plant": 0}, keys=keys5,
+                                        chunk_members=0, **noise)
+        far = closed_loop_batch_on_client(client, mpc, plants5, X5, PERIODS, in_axes={"plant": 0},
+                                          pushes=(times5, kicks5), keys=keys5, group=2, chunk_members=3,
+                                          on_chunk=functools.partial(_mark, str(tmp_path)), **noise)
+    assert sorted(f.name for f in tmp_path.iterdir()) == ["chunk-0", "chunk-1"]
+    assert np.asarray(far.inputs).shape[0] == 5 and np.asarray(far.trajectory.xs).shape[0] == 5
+    for i, r in enumerate(rows):
+        for a, b in zip(jax.tree_util.tree_leaves(far), jax.tree_util.tree_leaves(local)):
+            np.testing.assert_allclose(np.asarray(a)[i], np.asarray(b)[r], rtol=0, atol=1e-12)
+    assert not np.allclose(np.asarray(far.inputs[1]), np.asarray(far.inputs[0]))  # the members differ
 
 
 def test_box_qp_meets_its_optimality_conditions():
