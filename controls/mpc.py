@@ -758,9 +758,10 @@ def _checked_matrix(name, value, shape, owner):
     return a
 
 
-def _plant_checks(mpc, plant, owner, batched=False):
+def _plant_checks(mpc, plant, owner, batched=False, measured=False):
     """The plant against the model (``batched``: its arrays carry a leading member axis;
-    member 0 is checked)."""
+    member 0 is checked; ``measured``: the plant has a state of its own, which
+    ``_measured_plant`` checks with its start)."""
     model = mpc.ocp.system
     if batched and isinstance(plant, AbstractSystem):
         plant = jtu.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plant)
@@ -768,13 +769,17 @@ def _plant_checks(mpc, plant, owner, batched=False):
         raise MPCError(f"{owner}: plant must be an nhjax system (a scene, a Lagrangian, ...), got "
                        f"{type(plant).__name__}")
     n = mpc.ocp.x0.shape[0]
-    if not isinstance(plant.spaces, Euclidean):
+    if not measured and not isinstance(plant.spaces, Euclidean):
+        hint = ("pass measure= (the model's state from the plant's) to closed_loop" if owner == "closed_loop" else
+                "run such plants one by one with closed_loop(..., measure=...)")
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__} has "
                        f"spaces {plant.spaces!r}, the controller's model {type(model).__name__} a vector of {n} "
-                       "numbers; simulate the plant in the model's (reduced) coordinates")
+                       f"numbers; {hint}")
     if plant.control_dim != model.control_dim:
         raise MPCError(f"{owner}: the plant takes {plant.control_dim} inputs, the controller's model "
                        f"{type(model).__name__} {model.control_dim}")
+    if measured:
+        return
     names_p, names_m = tuple(plant.state_names), tuple(model.state_names)
     if names_p and names_m and names_p != names_m:
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__} has "
@@ -787,6 +792,34 @@ def _plant_checks(mpc, plant, owner, batched=False):
     if getattr(dx, "shape", None) != (n,):
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__}'s vector "
                        f"field returns shape {getattr(dx, 'shape', None)} for a state of {n} numbers")
+
+
+def _measured_plant(mpc, plant, x0, measure, owner):
+    """A plant with a state of its own (e.g. attitudes on SO(3)) and the map ``measure``
+    from it to the model's state: its start checked (finite numbers, the plant's
+    structure) and ``measure`` and the plant's vector field traced on it (abstractly)."""
+    n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
+    if not callable(measure):
+        raise MPCError(f"{owner}: measure must be a function from the plant's state to the model's state of {n} "
+                       f"numbers, got {type(measure).__name__}")
+    with as_problem_error():
+        x0 = V.as_state(plant, x0, owner=owner, xp=np)
+    leaves = jtu.tree_leaves(x0)
+    if not leaves or not all(np.all(np.isfinite(a)) for a in leaves):
+        raise MPCError(f"{owner}: x0 (the plant's state) must hold finite numbers")
+    try:
+        y = jax.eval_shape(measure, x0)
+    except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
+        raise MPCError(f"{owner}: measure does not take the plant's state ({type(plant).__name__}): {e}") from e
+    if getattr(y, "shape", None) != (n,):
+        raise MPCError(f"{owner}: measure must return the model's state of {n} numbers, got "
+                       f"{getattr(y, 'shape', type(y).__name__)}")
+    try:
+        dx = jax.eval_shape(lambda: plant.vector_field(0.0, x0, jnp.zeros(m)))
+    except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
+        raise MPCError(f"{owner}: {type(plant).__name__}'s vector field does not take x0: {e}") from e
+    del dx
+    return jtu.tree_map(host_array, x0)
 
 
 def _noise(name, value, k, owner):
@@ -827,11 +860,14 @@ def _pushes(pushes, n, lead, owner):
 
 
 # ------------------------------------------------------------------ the closed loop
-def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps):
+def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None):
     """Advance the plant over one period by RK4 (``plant_substeps`` steps per model
     interval) under the inputs u_seg (p, m) plus the force noise (p * plant_substeps, m);
     pushes whose time falls in a step's [t, t + dt) are added to the state at that
-    step's start. Returns (x at the period's end, int L dt over it)."""
+    step's start. Returns (x at the period's end, int L dt over it). A plant with a
+    state of its own (``measure``): ``_measured_period``."""
+    if measure is not None:
+        return _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure)
     L = mpc.ocp.running_cost
     dt = mpc.h / plant_substeps
     p = mpc.steps_per_period
@@ -857,6 +893,38 @@ def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substep
     return x, J
 
 
+def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure):
+    """``_plant_period`` for a plant with a state of its own (group-valued parts, e.g.
+    attitudes on SO(3)): RKMK4 steps (``nhjax.RKMK4``, the Munthe-Kaas form of RK4, so
+    that rotations stay rotations; its stages in a scan for the plant's
+    ``large_vector_field``), the cost int L(t, measure(x), u) dt carried as one more
+    (Euclidean) part of the state, so that it gets the same RK4 quadrature as a vector
+    plant's. The plant's ``project`` (its constraints, where it has any) at the period's
+    end."""
+    from nhjax.integrate.rkmk import RKMK4, LieODETerm
+
+    L = mpc.ocp.running_cost
+    dt = mpc.h / plant_substeps
+    p = mpc.steps_per_period
+
+    def field(tt, y, args):
+        xx, _ = y
+        u, w = args
+        return plant.vector_field(tt, xx, u + w), L(tt, measure(xx), u)
+
+    term = LieODETerm(field, (plant.spaces, Euclidean()))
+    solver = RKMK4(scan_stages=bool(getattr(plant, "large_vector_field", False)))
+
+    def body(y, j):
+        tt = t + j * dt
+        args = (u_seg[j // plant_substeps], force[j])
+        y1 = solver.step(term, tt, tt + dt, y, args, None, False)[0]
+        return y1, None
+
+    (x, J), _ = jax.lax.scan(body, (x, jnp.zeros(())), jnp.arange(p * plant_substeps))
+    return plant.project(t + mpc.period, x), J
+
+
 def _draws(mpc, key, periods, plant_substeps, force_sd, meas_sd):
     """Force noise (periods, p * plant_substeps, m) and measurement noise (periods, n)."""
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
@@ -866,28 +934,29 @@ def _draws(mpc, key, periods, plant_substeps, force_sd, meas_sd):
     return force, meas
 
 
-def _loop(mpc, plant, x0, plan0, t0, key, push_t, push_dx, force_sd, meas_sd, periods, plant_substeps):
+def _loop(mpc, plant, x0, plan0, t0, key, push_t, push_dx, force_sd, meas_sd, periods, plant_substeps,
+          measure=None):
     force, meas = _draws(mpc, key, periods, plant_substeps, force_sd, meas_sd)
 
     def body(carry, j):
         x, plan, J = carry
         t = t0 + j * mpc.period
-        y = x + meas[j]
+        y = (x if measure is None else measure(x)) + meas[j]
         u_seg, plan, status = mpc.step(plan, y, t, j)
-        x1, dJ = _plant_period(mpc, plant, x, t, u_seg, force[j], push_t, push_dx, plant_substeps)
+        x1, dJ = _plant_period(mpc, plant, x, t, u_seg, force[j], push_t, push_dx, plant_substeps, measure)
         return (x1, plan, J + dJ), (x, y, u_seg, status)
 
     (xT, _, J), (xs, ys, us, status) = jax.lax.scan(body, (x0, plan0, jnp.zeros(())), jnp.arange(periods))
-    xs = jnp.concatenate([xs, xT[None]])
+    xs = jtu.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), xs, xT)
     ts = t0 + jnp.arange(periods + 1) * mpc.period
     return xs, ys, us.reshape(-1, us.shape[-1]), _fields(status), J, _constraint_drift(plant, ts, xs)
 
 
 @compiled
 def _loop_program(mpc, plant, x0, plan0, t0, key_data, push_t, push_dx, force_sd, meas_sd, periods,
-                  plant_substeps):
+                  plant_substeps, measure=None):
     return _loop(mpc, plant, x0, Plan(*plan0), t0, jax.random.wrap_key_data(key_data), push_t, push_dx, force_sd,
-                 meas_sd, periods, plant_substeps)
+                 meas_sd, periods, plant_substeps, measure)
 
 
 @compiled
@@ -897,8 +966,13 @@ def _step_program(mpc, plan, y, t, j):
 
 
 @compiled
-def _plant_program(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps):
-    return _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps)
+def _plant_program(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None):
+    return _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure)
+
+
+@compiled(quick=True)
+def _measure_program(measure, x, noise):
+    return measure(x) + noise
 
 
 @compiled(quick=True)
@@ -951,24 +1025,25 @@ def _result(mpc, plant, t0, xs, ys, us, status, J, drift, periods):
     # for each of those in every new process)
     p = mpc.steps_per_period
     ts = np.asarray(t0) + np.arange(periods + 1) * float(mpc.period)
-    if xs.ndim == 3:
-        ts = np.broadcast_to(ts, xs.shape[:2])
-    u_host, x_host = np.asarray(us), np.asarray(xs)
+    lead = ys.shape[:-2]  # (the measurements: the model's vector states; the plant's may be a pytree)
+    if lead:
+        ts = np.broadcast_to(ts, lead + ts.shape)
+    u_host = np.asarray(us)
     u_at = V.to_device(np.concatenate([u_host[..., ::p, :], u_host[..., -1:, :]], axis=-2))
-    lead = xs.shape[:-2]
+    x_end = jtu.tree_map(lambda a: V.to_device(np.asarray(a)[(slice(None),) * len(lead) + (-1,)]), xs)
     steps = jax.device_put(np.full(lead, periods * p))
     traj = Trajectory(ts=V.to_device(ts), xs=xs, us=u_at, work=None, invariants={}, invariant_drift={},
                       constraint_drift=dict(drift), num_steps=steps, num_accepted_steps=steps,
                       num_rejected_steps=jax.device_put(np.zeros(lead, int)), t_final=V.to_device(ts[..., -1]),
-                      x_end=V.to_device(x_host[..., -1, :]), result=None, event_mask=None,
+                      x_end=x_end, result=None, event_mask=None,
                       state_names=tuple(plant.state_names))
     return ClosedLoop(trajectory=traj, inputs=us, measurements=ys, status=MPCStatus(*status), cost=J)
 
 
-def _setup(mpc, plant, periods, plant_substeps, owner, batched=False):
+def _setup(mpc, plant, periods, plant_substeps, owner, batched=False, measured=False):
     if not isinstance(mpc, MPC):
         raise MPCError(f"{owner}: mpc must be a controls.MPC, got {type(mpc).__name__}")
-    _plant_checks(mpc, plant, owner, batched)
+    _plant_checks(mpc, plant, owner, batched, measured)
     with as_problem_error():
         periods = V.integer("periods", periods, minimum=1, owner=owner)
         plant_substeps = V.integer("plant_substeps", mpc.substeps if plant_substeps is None else plant_substeps,
@@ -980,7 +1055,7 @@ def _setup(mpc, plant, periods, plant_substeps, owner, batched=False):
 
 
 def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=None, force_noise=0.0,
-                measurement_noise=0.0, key=None, plant_substeps=None, timing=False) -> ClosedLoop:
+                measurement_noise=0.0, key=None, plant_substeps=None, timing=False, measure=None) -> ClosedLoop:
     """Run ``mpc`` against ``plant`` for ``periods`` control periods from ``x0`` at ``t0``.
 
     Each period: the controller measures y = x + v (v ~ N(0, diag(measurement_noise^2)),
@@ -992,8 +1067,16 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
     increment of the velocity components): each is added to the plant's state at the
     start of the plant step that contains its time.
 
-    plant : any nhjax system whose state has the model's layout (the same vector of n
-        numbers and the same inputs; other parameters allowed: a model error).
+    plant : any nhjax system with the model's inputs. Without ``measure``: one whose
+        state has the model's layout (the same vector of n numbers; other parameters
+        allowed: a model error), advanced by RK4.
+    measure : for a plant with a state of its own, e.g. attitudes on SO(3) where the
+        model has coordinates or a reduced state: a function (jax-traceable) from the
+        plant's state to the model's n numbers, y = measure(x) + v. ``x0`` is then the
+        plant's state; the plant is advanced by RKMK4 (``nhjax.RKMK4``, RK4 in its
+        Munthe-Kaas form: group parts stay on their group), its ``project`` applied at
+        each period's end, the cost evaluated on measure(x); ``pushes`` (increments of
+        the model's state) are refused.
     key : a ``jax.random`` key for the noises (required when a noise level is not 0).
     u_guess : (N, m) the first plan's inputs (``MPC.init``).
     timing : False (default): the whole loop is one compiled ``lax.scan`` over periods
@@ -1003,37 +1086,46 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
 
     Returns a ``ClosedLoop``."""
     owner = "closed_loop"
-    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner)
+    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, measured=measure is not None)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
-    x0 = _checked_vector("x0", x0, n, owner)
+    if measure is None:
+        y0 = _checked_vector("x0", x0, n, owner)
+        x0 = host_array(y0)
+    else:
+        x0 = _measured_plant(mpc, plant, x0, measure, owner)
+        if pushes is not None and len(pushes):
+            raise MPCError(f"{owner}: pushes are increments of the model's state; a plant with a state of its own "
+                           "(measure=) takes none: start it from the pushed state, or push a vector plant")
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
     kd = _key_data(key, fsd, msd, owner)
-    push_t, push_dx = _pushes(pushes, n, (), owner)
-    plan0 = mpc.init(x0, u_guess, t0)
+    push_t, push_dx = _pushes(pushes if measure is None else None, n, (), owner)
+    if measure is not None:  # the model's state at the start (noise-free)
+        y0 = _measure_program(measure, x0, host_array(np.zeros(n)))
+    plan0 = mpc.init(y0, u_guess, t0)
     t0a = host_array(t0)
     pt, pdx, fs, ms = (host_array(a) for a in (push_t, push_dx, fsd, msd))
     if not timing:
-        xs, ys, us, status, J, drift = _loop_program(mpc, plant, host_array(x0), _fields(plan0), t0a, kd, pt, pdx,
-                                                     fs, ms, periods, plant_substeps)
+        xs, ys, us, status, J, drift = _loop_program(mpc, plant, x0, _fields(plan0), t0a, kd, pt, pdx,
+                                                     fs, ms, periods, plant_substeps, measure)
         return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)
     force, meas = _draws_program(mpc, kd, periods, plant_substeps, fs, ms)
-    x, plan, J = host_array(x0), _fields(plan0), host_array(0.0)
+    x, plan, J = x0, _fields(plan0), host_array(0.0)
     # compiled (or loaded) before the clock runs: solve_ms is the solve after compile
-    warm = _step_program(mpc, plan, x, t0a, jnp.asarray(np.asarray(0, np.int64)))
-    jax.block_until_ready(_plant_program(mpc, plant, x, t0a, warm[0], force[0], pt, pdx, plant_substeps))
+    warm = _step_program(mpc, plan, host_array(y0), t0a, jnp.asarray(np.asarray(0, np.int64)))
+    jax.block_until_ready(_plant_program(mpc, plant, x, t0a, warm[0], force[0], pt, pdx, plant_substeps, measure))
     xs, ys, segs, stats = [x], [], [], []
     for j in range(periods):
         t = t0a + j * mpc.period
-        y = x + meas[j]
+        y = x + meas[j] if measure is None else _measure_program(measure, x, meas[j])
         y.block_until_ready()
         tic = time.perf_counter()
         u_seg, plan, st = _step_program(mpc, plan, y, t, jnp.asarray(np.asarray(j, np.int64)))
         u_seg.block_until_ready()
         st = (*st[:-1], jnp.asarray((time.perf_counter() - tic) * 1e3))
-        x, dJ = _plant_program(mpc, plant, x, t, u_seg, force[j], pt, pdx, plant_substeps)
+        x, dJ = _plant_program(mpc, plant, x, t, u_seg, force[j], pt, pdx, plant_substeps, measure)
         J = J + dJ
         xs.append(x), ys.append(y), segs.append(u_seg), stats.append(st)
-    xs = jnp.stack(xs)
+    xs = jtu.tree_map(lambda *a: jnp.stack(a), *xs)
     status = tuple(jnp.stack(a) for a in zip(*stats))
     drift = _drift_program(plant, t0a + jnp.arange(periods + 1) * mpc.period, xs)
     return _result(mpc, plant, t0a, xs, jnp.stack(ys), jnp.concatenate(segs), status, J, drift, periods)

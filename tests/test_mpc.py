@@ -288,6 +288,56 @@ def test_batch_member_is_the_loop_run_alone():
         assert abs(float(batch.cost[i]) - float(alone.cost)) < 1e-10
 
 
+def _chart_of_attitudes(y):
+    """The model's (theta, chi, psi, theta', chi') from FallingCatAttitudes' state
+    (g1, g2, s): psi is the rotation about e2 that takes the first cylinder's attitude
+    at psi = 0 (same shape) to g1 (read modulo 2 pi)."""
+    g1, _, s = y
+    R = g1 @ CAT.poses(jnp.stack([s[0], s[1], 0.0]))[0][0].T
+    return jnp.stack([s[0], s[1], jnp.arctan2(R[0, 2], R[0, 0]), s[2], s[3]])
+
+
+def test_a_plant_on_so3_is_measured_into_the_models_coordinates():
+    """The regulator against the cat integrated on SO(3) x SO(3) (FallingCatAttitudes:
+    psi is no coordinate there; the turn is carried by the attitudes, stepped by RKMK4)
+    and measured into the model's coordinates by ``measure``: the loop equals the one
+    against the chart plant (RK4 on psi) to the two integrators' difference (the shape
+    to round-off, psi to 1e-8 at 4 plant steps per interval), the cost and inputs with
+    it; the attitudes stay rotations. Without ``measure`` such a plant is refused, and
+    so are pushes (increments of the model's state) and a measure of the wrong size."""
+    mpc, _ = _regulator()
+    att = CAT.attitude_model()
+    start = dict(theta=0.6, chi=0.4, theta_dot=0.3, chi_dot=-0.5)  # off the target: the loop works
+    y0, x0 = att.initial_state(**start), CAT.initial_state(**start)
+    np.testing.assert_allclose(np.asarray(_chart_of_attitudes(y0)), np.asarray(x0), atol=1e-14)
+    chart = closed_loop(mpc, CAT, x0, 10, plant_substeps=4)
+    lie = closed_loop(mpc, att, y0, 10, plant_substeps=4, measure=_chart_of_attitudes)
+    xs = np.asarray(chart.trajectory.xs)
+    ys = np.asarray(lie.measurements)
+    assert np.ptp(xs[:, 2]) > 0.05  # the cat turns: psi is worth measuring
+    shape = [0, 1, 3, 4]  # the same RK4 steps on the same shape equations: equal to round-off
+    np.testing.assert_allclose(ys[:, shape], xs[:-1, shape], rtol=0, atol=1e-12)
+    # psi: RK4 on psi' = -f(theta) chi' against RKMK4 on the attitudes, steps of 0.025 s
+    np.testing.assert_allclose(ys[:, 2], xs[:-1, 2], rtol=0, atol=1e-8)
+    # (psi has no weight and does not enter the shape's dynamics: the inputs do not see it)
+    np.testing.assert_allclose(np.asarray(lie.inputs), np.asarray(chart.inputs), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(float(lie.cost), float(chart.cost), rtol=1e-10)
+    final = np.asarray(jax.vmap(_chart_of_attitudes)(jax.tree_util.tree_map(lambda a: a[-1:], lie.trajectory.xs)))
+    np.testing.assert_allclose(final[0], xs[-1], rtol=0, atol=1e-8)
+    # stepped from Python (timing=True: one compiled call per period), the same loop
+    timed = closed_loop(mpc, att, y0, 3, plant_substeps=4, measure=_chart_of_attitudes, timing=True)
+    np.testing.assert_allclose(np.asarray(timed.measurements), ys[:3], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(timed.trajectory.xs[0]), np.asarray(lie.trajectory.xs[0][:4]), atol=1e-12)
+    for g in np.asarray(lie.trajectory.xs[0]), np.asarray(lie.trajectory.xs[1]):
+        np.testing.assert_allclose(np.einsum("kji,kjl->kil", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-12)
+    with pytest.raises(MPCError, match="measure="):
+        closed_loop(mpc, att, y0, 3)
+    with pytest.raises(MPCError, match="pushes"):
+        closed_loop(mpc, att, y0, 3, measure=_chart_of_attitudes, pushes=[(0.3, np.ones(5))])
+    with pytest.raises(MPCError, match="5 numbers"):
+        closed_loop(mpc, att, y0, 3, measure=lambda y: y[2])
+
+
 def _mark(folder, index):
     """A chunk hook (runs on the worker): leaves a file named by the chunk's index."""
     (Path(folder) / f"chunk-{index}").touch()
