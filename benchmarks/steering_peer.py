@@ -31,7 +31,8 @@ Ours (``controls``), each timed after a first (compiling) call as the median of
 
 * direct: ``solve_direct_newton(sphere_steering(...), Chebyshev(n, T, 3),
   linear_guess(ocp, param))`` for n = 6 and 12 (single shooting on SO(3) x
-  SO(3) by RKMK, feasible-path Newton); its control re-simulated with
+  SO(3) by RKMK, feasible-path Newton), and n = 6 again at the looser ``LOOSE``
+  tolerances (IPOPT's terminal accuracy); its control re-simulated with
   ``controls.rollout`` at 1e-12 for the achieved cost and violation;
 * Pontryagin: ``controls.pmp_residual`` of the Chebyshev(12) optimum on the
   reduced problem for costates and multipliers, then ``solve_pontryagin(...,
@@ -79,6 +80,10 @@ CONFIGS = [  # (N, controls, RK4 substeps)
     (30, "pc", 4), (30, "pl", 4), (60, "pc", 4), (60, "pl", 4), (60, "pl", 8),
 ]
 QUICK_CONFIGS = [(30, "pc", 4), (30, "pl", 4)]
+#: Our Chebyshev(6) solve again at looser tolerances: its control, re-simulated at 1e-12,
+#: misses the target by ~1e-6, as IPOPT's finest grid's does (~3e-6): the comparison at
+#: equal terminal accuracy (issue 39).
+LOOSE = dict(rtol=1e-7, atol=1e-7, ctol=1e-6, gtol=1e-5)
 OURS_REPEATS = 3
 COLD_REPEATS = 3
 
@@ -209,17 +214,20 @@ def ours_rows(pontryagin=True):
         rows.append(row)
         return row, r
 
-    for n in (6, 12):
+    for n, tols in ((6, {}), (6, LOOSE), (12, {})):
         param = controls.Chebyshev(n, T, 3)
         t = time.perf_counter()
         guess = linear_guess(ocp, param)
         guess_s = time.perf_counter() - t
+        tag = "" if not tols else f" at rtol {tols['rtol']:g}, ctol {tols['ctol']:g}, gtol {tols['gtol']:g}"
         row, r = timed("controls.solve_direct_newton",
-                       f"Chebyshev({n}) x 3, single shooting (RKMK), feasible-path Newton, linear start",
-                       lambda param=param, guess=guess: solve_direct_newton(ocp, param, guess, progress=False))
+                       f"Chebyshev({n}) x 3{tag}, single shooting (RKMK), feasible-path Newton, linear start",
+                       lambda param=param, guess=guess, tols=tols: solve_direct_newton(ocp, param, guess,
+                                                                                       progress=False, **tols))
         if row is None:
             continue
-        results[n] = r
+        if not tols:
+            results[n] = r
         _, J, psi = controls.rollout(ocp, r.control, rtol=1e-12, atol=1e-12)
         row.update(resim_cost=float(J), resim_violation=float(jnp.max(jnp.abs(psi))), linear_guess_seconds=guess_s)
         print(f"  {row['method']:80s} cost {row['cost']:.10f} viol {row['violation']:.0e} | resim cost "
