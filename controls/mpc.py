@@ -822,6 +822,32 @@ def _measured_plant(mpc, plant, x0, measure, owner):
     return jtu.tree_map(host_array, x0)
 
 
+def _push_functions(pushes, plant, x0, owner):
+    """A measured plant's pushes: (time, function of the plant's state) pairs, each
+    function returning a state of the same structure and shapes (checked abstractly)."""
+    fns = []
+    for item in pushes or ():
+        try:
+            t, fn = item
+            t = float(t)
+        except (TypeError, ValueError):
+            raise MPCError(f"{owner}: pushes on a plant with a state of its own (measure=) are (time [s], "
+                           f"function of the plant's state) pairs, got {item!r}") from None
+        if not np.isfinite(t) or not callable(fn):
+            raise MPCError(f"{owner}: pushes on a plant with a state of its own (measure=) are (finite time [s], "
+                           f"function of the plant's state) pairs, got ({t!r}, {fn!r})")
+        try:
+            out = jax.eval_shape(fn, x0)
+        except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
+            raise MPCError(f"{owner}: the push at t = {t:g} s does not take the plant's state: {e}") from e
+        if jtu.tree_structure(out) != jtu.tree_structure(x0) or any(
+                o.shape != np.shape(a) for o, a in zip(jtu.tree_leaves(out), jtu.tree_leaves(x0))):
+            raise MPCError(f"{owner}: the push at t = {t:g} s must return a state of the plant's structure and "
+                           "shapes")
+        fns.append(fn)
+    return tuple(fns)
+
+
 def _noise(name, value, k, owner):
     """A noise level: a number or k numbers, finite and >= 0."""
     try:
@@ -860,14 +886,14 @@ def _pushes(pushes, n, lead, owner):
 
 
 # ------------------------------------------------------------------ the closed loop
-def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None):
+def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None, push_fns=()):
     """Advance the plant over one period by RK4 (``plant_substeps`` steps per model
     interval) under the inputs u_seg (p, m) plus the force noise (p * plant_substeps, m);
     pushes whose time falls in a step's [t, t + dt) are added to the state at that
     step's start. Returns (x at the period's end, int L dt over it). A plant with a
     state of its own (``measure``): ``_measured_period``."""
     if measure is not None:
-        return _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure)
+        return _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure, push_t, push_fns)
     L = mpc.ocp.running_cost
     dt = mpc.h / plant_substeps
     p = mpc.steps_per_period
@@ -893,14 +919,15 @@ def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substep
     return x, J
 
 
-def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure):
+def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure, push_t=None, push_fns=()):
     """``_plant_period`` for a plant with a state of its own (group-valued parts, e.g.
     attitudes on SO(3)): RKMK4 steps (``nhjax.RKMK4``, the Munthe-Kaas form of RK4, so
     that rotations stay rotations; its stages in a scan for the plant's
     ``large_vector_field``), the cost int L(t, measure(x), u) dt carried as one more
     (Euclidean) part of the state, so that it gets the same RK4 quadrature as a vector
     plant's. The plant's ``project`` (its constraints, where it has any) at the period's
-    end."""
+    end. Pushes: ``push_fns[k]`` (a map of the plant's state) applied at the start of the
+    step that contains ``push_t[k]``."""
     from nhjax.integrate.rkmk import RKMK4, LieODETerm
 
     L = mpc.ocp.running_cost
@@ -917,8 +944,12 @@ def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure):
 
     def body(y, j):
         tt = t + j * dt
+        xx, J = y
+        for k, push in enumerate(push_fns):
+            hit = (push_t[k] >= tt) & (push_t[k] < tt + dt)
+            xx = jtu.tree_map(lambda a, b: jnp.where(hit, a, b), push(xx), xx)
         args = (u_seg[j // plant_substeps], force[j])
-        y1 = solver.step(term, tt, tt + dt, y, args, None, False)[0]
+        y1 = solver.step(term, tt, tt + dt, (xx, J), args, None, False)[0]
         return y1, None
 
     (x, J), _ = jax.lax.scan(body, (x, jnp.zeros(())), jnp.arange(p * plant_substeps))
@@ -935,7 +966,7 @@ def _draws(mpc, key, periods, plant_substeps, force_sd, meas_sd):
 
 
 def _loop(mpc, plant, x0, plan0, t0, key, push_t, push_dx, force_sd, meas_sd, periods, plant_substeps,
-          measure=None):
+          measure=None, push_fns=()):
     force, meas = _draws(mpc, key, periods, plant_substeps, force_sd, meas_sd)
 
     def body(carry, j):
@@ -943,7 +974,8 @@ def _loop(mpc, plant, x0, plan0, t0, key, push_t, push_dx, force_sd, meas_sd, pe
         t = t0 + j * mpc.period
         y = (x if measure is None else measure(x)) + meas[j]
         u_seg, plan, status = mpc.step(plan, y, t, j)
-        x1, dJ = _plant_period(mpc, plant, x, t, u_seg, force[j], push_t, push_dx, plant_substeps, measure)
+        x1, dJ = _plant_period(mpc, plant, x, t, u_seg, force[j], push_t, push_dx, plant_substeps, measure,
+                               push_fns)
         return (x1, plan, J + dJ), (x, y, u_seg, status)
 
     (xT, _, J), (xs, ys, us, status) = jax.lax.scan(body, (x0, plan0, jnp.zeros(())), jnp.arange(periods))
@@ -954,9 +986,9 @@ def _loop(mpc, plant, x0, plan0, t0, key, push_t, push_dx, force_sd, meas_sd, pe
 
 @compiled
 def _loop_program(mpc, plant, x0, plan0, t0, key_data, push_t, push_dx, force_sd, meas_sd, periods,
-                  plant_substeps, measure=None):
+                  plant_substeps, measure=None, push_fns=()):
     return _loop(mpc, plant, x0, Plan(*plan0), t0, jax.random.wrap_key_data(key_data), push_t, push_dx, force_sd,
-                 meas_sd, periods, plant_substeps, measure)
+                 meas_sd, periods, plant_substeps, measure, push_fns)
 
 
 @compiled
@@ -966,8 +998,8 @@ def _step_program(mpc, plan, y, t, j):
 
 
 @compiled
-def _plant_program(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None):
-    return _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure)
+def _plant_program(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure=None, push_fns=()):
+    return _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substeps, measure, push_fns)
 
 
 @compiled(quick=True)
@@ -1075,8 +1107,10 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
         plant's state to the model's n numbers, y = measure(x) + v. ``x0`` is then the
         plant's state; the plant is advanced by RKMK4 (``nhjax.RKMK4``, RK4 in its
         Munthe-Kaas form: group parts stay on their group), its ``project`` applied at
-        each period's end, the cost evaluated on measure(x); ``pushes`` (increments of
-        the model's state) are refused.
+        each period's end, the cost evaluated on measure(x); ``pushes`` are then
+        (time [s], function) pairs, each function a map of the plant's state (e.g. a
+        change of its velocities), applied at the start of the plant step that contains
+        its time.
     key : a ``jax.random`` key for the noises (required when a noise level is not 0).
     u_guess : (N, m) the first plan's inputs (``MPC.init``).
     timing : False (default): the whole loop is one compiled ``lax.scan`` over periods
@@ -1093,12 +1127,13 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
         x0 = host_array(y0)
     else:
         x0 = _measured_plant(mpc, plant, x0, measure, owner)
-        if pushes is not None and len(pushes):
-            raise MPCError(f"{owner}: pushes are increments of the model's state; a plant with a state of its own "
-                           "(measure=) takes none: start it from the pushed state, or push a vector plant")
+        push_fns = _push_functions(pushes, plant, x0, owner)
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
     kd = _key_data(key, fsd, msd, owner)
-    push_t, push_dx = _pushes(pushes if measure is None else None, n, (), owner)
+    if measure is None:
+        push_t, push_dx, push_fns = *_pushes(pushes, n, (), owner), ()
+    else:
+        push_t, push_dx = np.asarray([float(t) for t, _ in pushes or ()]), np.zeros((0, n))
     if measure is not None:  # the model's state at the start (noise-free)
         y0 = _measure_program(measure, x0, host_array(np.zeros(n)))
     plan0 = mpc.init(y0, u_guess, t0)
@@ -1106,13 +1141,14 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
     pt, pdx, fs, ms = (host_array(a) for a in (push_t, push_dx, fsd, msd))
     if not timing:
         xs, ys, us, status, J, drift = _loop_program(mpc, plant, x0, _fields(plan0), t0a, kd, pt, pdx,
-                                                     fs, ms, periods, plant_substeps, measure)
+                                                     fs, ms, periods, plant_substeps, measure, push_fns)
         return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)
     force, meas = _draws_program(mpc, kd, periods, plant_substeps, fs, ms)
     x, plan, J = x0, _fields(plan0), host_array(0.0)
     # compiled (or loaded) before the clock runs: solve_ms is the solve after compile
     warm = _step_program(mpc, plan, host_array(y0), t0a, jnp.asarray(np.asarray(0, np.int64)))
-    jax.block_until_ready(_plant_program(mpc, plant, x, t0a, warm[0], force[0], pt, pdx, plant_substeps, measure))
+    jax.block_until_ready(_plant_program(mpc, plant, x, t0a, warm[0], force[0], pt, pdx, plant_substeps, measure,
+                                         push_fns))
     xs, ys, segs, stats = [x], [], [], []
     for j in range(periods):
         t = t0a + j * mpc.period
@@ -1122,7 +1158,7 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
         u_seg, plan, st = _step_program(mpc, plan, y, t, jnp.asarray(np.asarray(j, np.int64)))
         u_seg.block_until_ready()
         st = (*st[:-1], jnp.asarray((time.perf_counter() - tic) * 1e3))
-        x, dJ = _plant_program(mpc, plant, x, t, u_seg, force[j], pt, pdx, plant_substeps, measure)
+        x, dJ = _plant_program(mpc, plant, x, t, u_seg, force[j], pt, pdx, plant_substeps, measure, push_fns)
         J = J + dJ
         xs.append(x), ys.append(y), segs.append(u_seg), stats.append(st)
     xs = jtu.tree_map(lambda *a: jnp.stack(a), *xs)

@@ -11,7 +11,12 @@ Controller: ``controls.MPC(ocp, period=0.05, intervals=20, mode="rti")``: horizo
 1 s on 20 intervals (RK4, piecewise-constant torque), one SQP step per period.
 Plant: the same equations with the top's mass and inertia 10% larger, advanced by
 RK4 at the model's step; at t = 5 s a push changes the shell centre's velocity by
-0.3 m/s along the top's x axis (``controls.tasks.shell_push``). The loop is stepped
+0.3 m/s along the top's x axis (``controls.tasks.shell_push``). ``--plant full``:
+the plant is instead the whole robot (``ShellWithTop``: both attitudes on SO(3),
+its equations derived by nhjax from the Lagrangian and the rolling constraint, an
+independent model of the same physics), stepped by RKMK4 and measured into the
+reduced state (``closed_loop(..., measure=...)``); the push is the same change of
+the shell's angular velocity, applied to its state. The loop is stepped
 from Python (``closed_loop(..., timing=True)``): each period's solve is one compiled
 call, timed after compile.
 
@@ -29,7 +34,7 @@ takes to come back under 2 cm), ``DIR/mpc_sphere.png`` (path, tracking error,
 torques, solve time per period) and ``DIR/mpc_sphere.gif`` (the robot seen from
 above chasing the target, the push drawn as an arrow; ``--no-animation`` skips it).
 
-Usage: nhjax run mpc_sphere [--out DIR] [--laps 1] [--no-ipopt] [--no-animation]
+Usage: nhjax run mpc_sphere [--out DIR] [--laps 1] [--plant reduced|full] [--no-ipopt] [--no-animation]
 """
 
 import argparse
@@ -40,6 +45,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 import controls
@@ -63,18 +69,56 @@ def setup():
     return robot, ocp, mpc, plant
 
 
-def run_nhjax(periods):
+def reduced_of(y):
+    """The reduced state (omega, Omega in the top's axes, the rows gamma, alpha, beta of
+    R_top, xy) of the whole robot's state ((xy, R_shell, R_top), (xy', Omega_body,
+    omega_top))."""
+    (xy, Rsh, Rt), v = y
+    return jnp.concatenate([v[5:8], Rt.T @ (Rsh @ v[2:5]), Rt[2], Rt[0], Rt[1], xy])
+
+
+def full_push(robot, dv):
+    """The push of ``shell_push`` on the whole robot's state: the same change of the
+    shell's angular velocity, dOmega = e3 x dv / Rs in the top's axes (dv in its x, y
+    axes), with the centre's velocity from rolling, dV = dOmega_space x Rs e3."""
+    Rs = float(robot.Rs)
+    d_top = np.cross([0.0, 0.0, 1.0], [*np.asarray(dv, float), 0.0]) / Rs
+
+    def push(y):
+        (xy, Rsh, Rt), v = y
+        dW = Rt @ d_top
+        dV = jnp.cross(dW, jnp.array([0.0, 0.0, Rs]))
+        return (xy, Rsh, Rt), v + jnp.concatenate([dV[:2], Rsh.T @ dW, jnp.zeros(3)])
+
+    return push
+
+
+def run_nhjax(periods, plant_kind="reduced"):
     robot, ocp, mpc, plant = setup()
     pushes = [(PUSH_TIME, shell_push(robot, PUSH_DV))]
+    extra = {}
+    if plant_kind == "full":
+        plant = ShellWithTop(mt=robot.mt * HEAVIER, It=np.asarray(robot.It) * HEAVIER)
+        x0 = np.asarray(ocp.x0)
+        start = plant.initial_state(top_attitude=np.stack([x0[9:12], x0[12:15], x0[6:9]]))
+        gap = float(np.abs(np.asarray(reduced_of(start)) - x0).max())
+        assert gap < 1e-12, f"the whole robot's start is not the model's: {gap}"
+        pushes = [(PUSH_TIME, full_push(robot, PUSH_DV))]
+        extra = dict(measure=reduced_of)
+    else:
+        start = ocp.x0
     tic = time.perf_counter()
-    loop = controls.closed_loop(mpc, plant, ocp.x0, periods, pushes=pushes, timing=True)
+    loop = controls.closed_loop(mpc, plant, start, periods, pushes=pushes, timing=True, **extra)
     seconds = time.perf_counter() - tic
     ts = np.asarray(loop.trajectory.ts)
-    xs = np.asarray(loop.trajectory.xs)
+    xs = loop.trajectory.xs
+    xs = np.asarray(xs) if plant_kind != "full" else np.asarray(jax.vmap(reduced_of)(xs))  # (the model's view)
     err = np.asarray(ocp.running_cost.error(ts, xs))
     return dict(ts=ts, xs=xs, us=np.asarray(loop.inputs), err=err, ms=np.asarray(loop.status.solve_ms),
                 fallback=np.asarray(loop.status.fallback), qp_ok=np.asarray(loop.status.qp_ok),
-                cost=float(loop.cost), seconds=seconds, ref=np.asarray(jax.vmap(ocp.running_cost.reference)(ts)))
+                cost=float(loop.cost), seconds=seconds,
+                drift={k: float(v) for k, v in loop.trajectory.constraint_drift.items()},
+                ref=np.asarray(jax.vmap(ocp.running_cost.reference)(ts)))
 
 
 def run_ipopt(periods):
@@ -203,6 +247,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="mpc_sphere", help="folder for the outputs (default: ./mpc_sphere)")
     ap.add_argument("--laps", type=float, default=1.0, help="laps of the figure-eight (20 s each)")
+    ap.add_argument("--plant", choices=("reduced", "full"), default="reduced",
+                    help="the plant: the reduced equations (default) or the whole robot on SO(3) x SO(3)")
     ap.add_argument("--no-ipopt", action="store_true", help="skip the CasADi + IPOPT peer")
     ap.add_argument("--no-animation", action="store_true", help="skip the GIF")
     a = ap.parse_args()
@@ -212,18 +258,18 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     periods = int(round(a.laps * 20.0 / PERIOD))
     load_start = os.getloadavg()
-    r = run_nhjax(periods)
+    r = run_nhjax(periods, a.plant)
     after = r["ts"] >= PUSH_TIME + 2.0
     info = dict(command="nhjax run mpc_sphere " + " ".join(sys.argv[1:]), periods=periods, period_s=PERIOD,
                 horizon_s=HORIZON, intervals=INTERVALS, mode="rti", push_time_s=PUSH_TIME, push_dv_m_s=PUSH_DV,
-                plant_top_scale=HEAVIER,
+                plant_top_scale=HEAVIER, plant=a.plant,
                 period_ms_median=float(np.median(r["ms"])), period_ms_max=float(np.max(r["ms"])),
                 period_ms_p95=float(np.percentile(r["ms"], 95)),
                 closed_loop_cost=r["cost"], tracking_error_after_push_m=float(r["err"][after].max()),
                 tracking_error_peak_after_push_m=float(r["err"][r["ts"] >= PUSH_TIME].max()),
                 seconds_back_under_2cm=back_under(r["ts"], r["err"], PUSH_TIME, 0.02),
                 fallbacks=int(r["fallback"].sum()), qp_failures=int((~r["qp_ok"]).sum()),
-                loop_seconds_with_compile=r["seconds"])
+                loop_seconds_with_compile=r["seconds"], plant_constraint_drift=r["drift"])
     print(f"nhjax RTI: {np.median(r['ms']):.2f} ms median, {np.max(r['ms']):.2f} ms max per period; "
           f"closed-loop cost {r['cost']:.6g}; error after push + 2 s <= {info['tracking_error_after_push_m'] * 100:.2f} cm"
           f" (peak {info['tracking_error_peak_after_push_m'] * 100:.1f} cm); fallbacks {info['fallbacks']}")
