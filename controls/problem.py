@@ -36,6 +36,7 @@ import collections
 import contextlib
 import functools
 import sys
+import threading
 
 import numpy as np
 
@@ -71,12 +72,34 @@ def nan_errors(mode: str = "nan"):
     if not hasattr(_errors, "EQX_ON_ERROR"):
         yield
         return
-    old = _errors.EQX_ON_ERROR
-    _errors.EQX_ON_ERROR = mode
+    # The setting is one module global for every thread (solvers called from threads, e.g.
+    # a threads-only Dask cluster's workers, enter and leave at once): the setting found
+    # before the first context opened comes back when the last one closes, whatever the
+    # order in which threads leave (restoring each context's predecessor could leave a
+    # thread's mode in force for good). The lock is nhjax's own for the same global.
+    stack = _NAN_MODES.__dict__.setdefault("modes", [])  # this thread's open contexts
+    with _programs._ERROR_MODE_LOCK:
+        if _NAN_CONTEXTS["open"] == 0:
+            _NAN_CONTEXTS["before"] = _errors.EQX_ON_ERROR
+        _NAN_CONTEXTS["open"] += 1
+        stack.append(mode)
+        _errors.EQX_ON_ERROR = mode
     try:
         yield
     finally:
-        _errors.EQX_ON_ERROR = old
+        with _programs._ERROR_MODE_LOCK:
+            _NAN_CONTEXTS["open"] -= 1
+            stack.pop()
+            if _NAN_CONTEXTS["open"] == 0:
+                _errors.EQX_ON_ERROR = _NAN_CONTEXTS["before"]
+            elif stack:  # back to this thread's enclosing context (another thread's stays)
+                _errors.EQX_ON_ERROR = stack[-1]
+
+
+#: nan_errors' bookkeeping: the contexts open in all threads and the setting before the
+#: first opened; per thread, the modes of its open contexts.
+_NAN_CONTEXTS = {"open": 0, "before": None}
+_NAN_MODES = threading.local()
 
 
 def _clear_error_traces():

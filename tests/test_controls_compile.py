@@ -320,3 +320,46 @@ def test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them(tmp_pa
     assert second["stats"]["executables"] >= 4 and second["stats"]["stored"] == 0
     assert second["direct"] == first["direct"] and second["indirect"] == first["indirect"]
     assert second["status"] == first["status"]
+
+
+def test_nan_errors_restores_the_setting_whatever_order_threads_leave_in():
+    """equinox's error setting is one global for all threads. Two threads whose
+    ``nan_errors`` contexts overlap (as the solvers of a threads-only Dask cluster's
+    workers do) and close in the order they opened: the second keeps its own mode after
+    the first has left, and the setting from before both comes back when the last
+    closes (restoring each context's predecessor left "off" in force for good, and a
+    later jitted simulate() raised no runtime error)."""
+    import threading
+
+    from equinox import _errors
+
+    from controls.problem import nan_errors
+
+    before = _errors.EQX_ON_ERROR
+    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    seen = {}
+
+    def first():
+        with nan_errors("off"):
+            a_in.set()
+            b_in.wait(10)
+        a_out.set()
+
+    def second():
+        a_in.wait(10)
+        with nan_errors("nan"):
+            b_in.set()
+            a_out.wait(10)
+            seen["second, after the first left"] = _errors.EQX_ON_ERROR
+        seen["after both"] = _errors.EQX_ON_ERROR
+
+    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(20)
+    assert seen == {"second, after the first left": "nan", "after both": before}
+    assert _errors.EQX_ON_ERROR == before
+    with nan_errors("off"), nan_errors("nan"):  # nested in one thread: back to the outer mode
+        pass
+    assert _errors.EQX_ON_ERROR == before

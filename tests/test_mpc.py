@@ -380,6 +380,9 @@ def test_batch_on_a_dask_client_is_the_local_batch_member_by_member(tmp_path):
                                           pushes=(times5, kicks5), keys=keys5, group=2, chunk_members=3,
                                           on_chunk=functools.partial(_mark, str(tmp_path)), **noise)
     assert sorted(f.name for f in tmp_path.iterdir()) == ["chunk-0", "chunk-1"]
+    from equinox import _errors
+
+    assert _errors.EQX_ON_ERROR == "raise"  # the workers' solver threads left equinox's setting as it was
     assert np.asarray(far.inputs).shape[0] == 5 and np.asarray(far.trajectory.xs).shape[0] == 5
     for i, r in enumerate(rows):
         for a, b in zip(jax.tree_util.tree_leaves(far), jax.tree_util.tree_leaves(local)):
