@@ -21,6 +21,7 @@ pytest.importorskip("dask.distributed")
 import cloudpickle  # noqa: E402
 from dask.distributed import Client, LocalCluster  # noqa: E402
 
+import jax  # noqa: E402
 import nhjax  # noqa: E402
 from nhjax.integrate.distributed import simulate_batch_on_client  # noqa: E402
 from nhjax.scenes.skate import Skate  # noqa: E402
@@ -151,3 +152,28 @@ def test_somersaults_over_turn_angles_equal_local_solves(client):
         here = _somersault_turn(turn)
         assert abs(v["cost"] - here["cost"]) <= 1e-12 * abs(here["cost"])
         assert v["violation"] < 1e-9
+
+
+def test_closed_loops_on_worker_processes_equal_the_local_batch(client):
+    """closed_loop_batch_on_client on the two worker processes (the controller, plant
+    and problem pickled to them): the torque-driven cat's shrinking-horizon landing from
+    six perturbed starts, in chunks of four (the last padded), against the local
+    closed_loop_batch of the same members: inputs, states and costs to 1e-10."""
+    import controls
+    from controls.distributed import closed_loop_batch_on_client
+    from controls.tasks import torque_somersault
+    from nhjax.scenes import FallingCat
+
+    cat = FallingCat()
+    task = torque_somersault(cat, 0.6, -np.pi, 2.0)
+    ocp = controls.OCP(cat, task.x0, 2.0, task.running_cost, terminal_constraints=task.terminal_constraints,
+                       u_lower=-2.0, u_upper=2.0)
+    mpc = controls.MPC(ocp, 0.2, 10, mode="rti", horizon="shrinking", terminal="penalty", terminal_weight=1e4)
+    rng = np.random.default_rng(5)
+    X = np.asarray(task.x0) + np.concatenate([rng.uniform(-0.05, 0.05, (6, 2)), np.zeros((6, 1)),
+                                              rng.uniform(-0.2, 0.2, (6, 2))], axis=1)
+    local = controls.closed_loop_batch(mpc, cat, X, 10, group=2)
+    far = closed_loop_batch_on_client(client, mpc, cat, X, 10, group=2, chunk_members=4)
+    for a, b in zip(jax.tree_util.tree_leaves(far), jax.tree_util.tree_leaves(local)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-10)
+    assert np.ptp(np.asarray(local.trajectory.xs[:, -1, 2])) > 0  # the members differ
