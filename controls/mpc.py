@@ -815,17 +815,17 @@ def _measured_plant(mpc, plant, x0, measure, owner):
         raise MPCError(f"{owner}: measure must return the model's state of {n} numbers, got "
                        f"{getattr(y, 'shape', type(y).__name__)}")
     try:
-        dx = jax.eval_shape(lambda: plant.vector_field(0.0, x0, jnp.zeros(m)))
+        jax.eval_shape(lambda: plant.vector_field(0.0, x0, jnp.zeros(m)))
     except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
         raise MPCError(f"{owner}: {type(plant).__name__}'s vector field does not take x0: {e}") from e
-    del dx
     return jtu.tree_map(host_array, x0)
 
 
-def _push_functions(pushes, plant, x0, owner):
-    """A measured plant's pushes: (time, function of the plant's state) pairs, each
-    function returning a state of the same structure and shapes (checked abstractly)."""
-    fns = []
+def _push_functions(pushes, x0, owner):
+    """A measured plant's pushes, (time, function of the plant's state) pairs, each
+    function returning a state of the same structure and shapes (checked abstractly), as
+    (times (P,), the P functions)."""
+    times, fns = [], []
     for item in pushes or ():
         try:
             t, fn = item
@@ -844,8 +844,9 @@ def _push_functions(pushes, plant, x0, owner):
                 o.shape != np.shape(a) for o, a in zip(jtu.tree_leaves(out), jtu.tree_leaves(x0))):
             raise MPCError(f"{owner}: the push at t = {t:g} s must return a state of the plant's structure and "
                            "shapes")
+        times.append(t)
         fns.append(fn)
-    return tuple(fns)
+    return np.asarray(times, float), tuple(fns)
 
 
 def _noise(name, value, k, owner):
@@ -919,7 +920,7 @@ def _plant_period(mpc, plant, x, t, u_seg, force, push_t, push_dx, plant_substep
     return x, J
 
 
-def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure, push_t=None, push_fns=()):
+def _measured_period(mpc, plant, x, t, u_seg, force, plant_substeps, measure, push_t, push_fns):
     """``_plant_period`` for a plant with a state of its own (group-valued parts, e.g.
     attitudes on SO(3)): RKMK4 steps (``nhjax.RKMK4``, the Munthe-Kaas form of RK4, so
     that rotations stay rotations; its stages in a scan for the plant's
@@ -1127,15 +1128,13 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
         x0 = host_array(y0)
     else:
         x0 = _measured_plant(mpc, plant, x0, measure, owner)
-        push_fns = _push_functions(pushes, plant, x0, owner)
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
     kd = _key_data(key, fsd, msd, owner)
     if measure is None:
-        push_t, push_dx, push_fns = *_pushes(pushes, n, (), owner), ()
+        (push_t, push_dx), push_fns = _pushes(pushes, n, (), owner), ()
     else:
-        push_t, push_dx = np.asarray([float(t) for t, _ in pushes or ()]), np.zeros((0, n))
-    if measure is not None:  # the model's state at the start (noise-free)
-        y0 = _measure_program(measure, x0, host_array(np.zeros(n)))
+        (push_t, push_fns), push_dx = _push_functions(pushes, x0, owner), np.zeros((0, n))
+        y0 = _measure_program(measure, x0, host_array(np.zeros(n)))  # the model's start (noise-free)
     plan0 = mpc.init(y0, u_guess, t0)
     t0a = host_array(t0)
     pt, pdx, fs, ms = (host_array(a) for a in (push_t, push_dx, fsd, msd))

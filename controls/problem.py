@@ -328,7 +328,6 @@ def _check_shapes_traced(system, x0, running_cost, terminal_cost, terminal_const
         c = jax.eval_shape(lambda: terminal_constraints(x0))
         if len(c.shape) != 1:
             raise ProblemError(f"terminal_constraints(x) must return a 1-D array, got shape {c.shape}")
-    del dx
     return []
 
 
