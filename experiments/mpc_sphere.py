@@ -59,11 +59,15 @@ PUSH_TIME, PUSH_DV = 5.0, (0.3, 0.0)  # [s], [m/s]
 HEAVIER = 1.1  # the plant's top: mass and inertia
 
 
-def setup():
+def setup(plant_kind="reduced"):
+    """(robot, its tracking OCP, the MPC, the plant: the heavier robot in the reduced
+    equations, or the whole heavier robot for ``plant_kind="full"``)."""
     robot = ShellWithTop()
     ocp = sphere_tracking(robot, horizon=HORIZON)
     mpc = controls.MPC(ocp, PERIOD, INTERVALS, mode="rti")
     heavy = ShellWithTop(mt=robot.mt * HEAVIER, It=np.asarray(robot.It) * HEAVIER)
+    if plant_kind == "full":
+        return robot, ocp, mpc, heavy
     plant = sphere_steering_reduced(heavy, (0.0, 0.0), HORIZON).system
     assert isinstance(plant, ReducedSteering)
     return robot, ocp, mpc, plant
@@ -82,7 +86,7 @@ def full_push(robot, dv):
     shell's angular velocity, dOmega = e3 x dv / Rs in the top's axes (dv in its x, y
     axes), with the centre's velocity from rolling, dV = dOmega_space x Rs e3."""
     Rs = float(robot.Rs)
-    d_top = np.cross([0.0, 0.0, 1.0], [*np.asarray(dv, float), 0.0]) / Rs
+    d_top = shell_push(robot, dv)[3:6]  # the reduced push: dOmega in the top's axes
 
     def push(y):
         (xy, Rsh, Rt), v = y
@@ -94,11 +98,10 @@ def full_push(robot, dv):
 
 
 def run_nhjax(periods, plant_kind="reduced"):
-    robot, ocp, mpc, plant = setup()
+    robot, ocp, mpc, plant = setup(plant_kind)
     pushes = [(PUSH_TIME, shell_push(robot, PUSH_DV))]
     extra = {}
     if plant_kind == "full":
-        plant = ShellWithTop(mt=robot.mt * HEAVIER, It=np.asarray(robot.It) * HEAVIER)
         x0 = np.asarray(ocp.x0)
         start = plant.initial_state(top_attitude=np.stack([x0[9:12], x0[12:15], x0[6:9]]))
         gap = float(np.abs(np.asarray(reduced_of(start)) - x0).max())
@@ -225,7 +228,8 @@ def animation(r, robot, path, frames=100, fps=10):
     arrow = a.annotate("", xy=(0, 0), xytext=(0, 0), arrowprops=dict(arrowstyle="-|>", color="r", lw=2),
                        annotation_clip=False)
     title = a.set_title("")
-    a.text(0.02, 0.02, "red star: target r(t); orange: top's centre of mass; red arrow: push", fontsize=7, transform=a.transAxes)
+    a.text(0.02, 0.02, "red star: target r(t); orange: top's centre of mass; red arrow: push", fontsize=7,
+           transform=a.transAxes)
 
     def draw(i):
         k = sel[i]
