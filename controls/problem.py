@@ -36,7 +36,6 @@ import collections
 import contextlib
 import functools
 import sys
-import threading
 
 import numpy as np
 
@@ -55,64 +54,18 @@ __all__ = ["OCP", "ProblemError", "TRACES", "rollout"]
 TRACES = collections.Counter()
 
 
-@contextlib.contextmanager
 def nan_errors(mode: str = "nan"):
     """equinox's runtime errors (eqx.error_if in diffrax, optimistix, lineax and
-    simulate's checks) traced as NaN outputs instead of host callbacks, while the
-    programs of ``compiled`` are traced. A program with a host callback is never kept
-    in JAX's persistent cache; the solvers here read NaN/inf as a failed trial (the
-    line searches back off) and report it.
+    simulate's checks) traced as NaN outputs instead of host callbacks, in this thread,
+    while the programs of ``compiled`` are traced (``nhjax._programs.errors``). A program
+    with a host callback is never kept in JAX's persistent cache; the solvers here read
+    NaN/inf as a failed trial (the line searches back off) and report it.
 
     ``mode="off"``: no checks at all, for batched programs: under vmap an equinox
     check fails every member when one fails (its predicate is reduced over the batch),
     whereas a solve that stops early leaves its unreached saves at inf, which fails
     that member's trial only."""
-    from equinox import _errors
-
-    if not hasattr(_errors, "EQX_ON_ERROR"):
-        yield
-        return
-    # The setting is one module global for every thread (solvers called from threads, e.g.
-    # a threads-only Dask cluster's workers, enter and leave at once): the setting found
-    # before the first context opened comes back when the last one closes, whatever the
-    # order in which threads leave (restoring each context's predecessor could leave a
-    # thread's mode in force for good). The lock is nhjax's own for the same global.
-    stack = _NAN_MODES.__dict__.setdefault("modes", [])  # this thread's open contexts
-    with _programs._ERROR_MODE_LOCK:
-        if _NAN_CONTEXTS["open"] == 0:
-            _NAN_CONTEXTS["before"] = _errors.EQX_ON_ERROR
-        _NAN_CONTEXTS["open"] += 1
-        stack.append(mode)
-        _errors.EQX_ON_ERROR = mode
-    try:
-        yield
-    finally:
-        with _programs._ERROR_MODE_LOCK:
-            _NAN_CONTEXTS["open"] -= 1
-            stack.pop()
-            if _NAN_CONTEXTS["open"] == 0:
-                _errors.EQX_ON_ERROR = _NAN_CONTEXTS["before"]
-            elif stack:  # back to this thread's enclosing context (another thread's stays)
-                _errors.EQX_ON_ERROR = stack[-1]
-
-
-#: nan_errors' bookkeeping: the contexts open in all threads and the setting before the
-#: first opened; per thread, the modes of its open contexts.
-_NAN_CONTEXTS = {"open": 0, "before": None}
-_NAN_MODES = threading.local()
-
-
-def _clear_error_traces():
-    """Forget equinox's cached traces of its error checks: they are cached by argument
-    shapes and message only, so a trace made in one error mode would otherwise be
-    reused in the other (a host callback in our programs, or NaN instead of an error in
-    a user's own jitted simulate() afterwards)."""
-    from equinox import _errors
-
-    impl = getattr(_errors, "branched_error_if_impl_jit", None)
-    cached = getattr(impl, "_cached", None)
-    if cached is not None and hasattr(cached, "clear_cache"):
-        cached.clear_cache()
+    return _programs.errors(mode)
 
 
 def host_array(x):
@@ -152,11 +105,7 @@ def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
     @functools.wraps(fn)
     def counted(*args, **kwargs):  # runs only while tracing
         TRACES[fn.__name__] += 1
-        _clear_error_traces()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            _clear_error_traces()
+        return fn(*args, **kwargs)
 
     jitted = eqx.filter_jit(counted)
 

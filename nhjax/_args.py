@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 
+from ._programs import branched_error_if
 from .errors import GroupMembershipError, ParameterError
 from .lie.spaces import SE2Body, SO3Body, SO3Spatial, UnitQuaternionBody, is_space
 
@@ -37,18 +38,10 @@ def is_traced(*trees) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jtu.tree_leaves(trees))
 
 
-def _error_mode() -> str:
-    from equinox import _errors
-
-    return getattr(_errors, "EQX_ON_ERROR", "raise")
-
-
 def error_if(x, pred, msg):
-    """``equinox.error_if`` with equinox's current error mode passed explicitly: the mode
-    is then part of the key of equinox's cached trace of the check, so a check traced
-    in one mode (callbacks by default, NaN under controls' ``nan_errors``) is never
-    reused in another."""
-    return branched_error_if(x, pred, 0, [msg], _error_mode())
+    """``equinox.error_if`` in this thread's error mode (``_programs.error_mode``:
+    callbacks by default, NaN under controls' ``nan_errors``)."""
+    return branched_error_if(x, pred, 0, [msg])
 
 
 def first_error_if(x, checks):
@@ -64,32 +57,7 @@ def first_error_if(x, checks):
     if len(checks) == 1:
         return error_if(x, *checks[0])
     preds = jnp.stack([jnp.any(jnp.asarray(p)) for p, _ in checks])
-    return branched_error_if(x, jnp.any(preds), jnp.argmax(preds), [m for _, m in checks], _error_mode())
-
-
-def branched_error_if(x, pred, index, msgs, on_error):
-    """``equinox.branched_error_if(x, pred, index, msgs, on_error=on_error)``. In the
-    modes that show no message (``"off"``: no check; ``"nan"``: NaN outputs, as
-    controls' optimizers use it) a traced check skips what equinox does for a message
-    at every check it traces: formatting every frame of the Python stack (tens of
-    milliseconds in a solve traced inside an optimizer's program), which only the
-    ``"raise"`` mode shows. The program is the same as equinox's."""
-    if on_error in ("off", "nan") and isinstance(pred, jax.core.Tracer):
-        if on_error == "off":
-            return x
-        try:
-            from equinox import _errors
-            from equinox.internal import unvmap_any, unvmap_max
-
-            dynamic, static = eqx.partition(x, eqx.is_array)
-            if jtu.tree_leaves(dynamic):
-                index = index if isinstance(index, int) else unvmap_max(index)
-                dynamic = _errors._error(dynamic, unvmap_any(pred), index, msgs=msgs, on_error="nan", stack=[])
-                return eqx.combine(dynamic, static)
-        except (ImportError, AttributeError, TypeError):  # another equinox: its own way
-            pass
-    return eqx.branched_error_if(x, pred, index, msgs, on_error=on_error)
-
+    return branched_error_if(x, jnp.any(preds), jnp.argmax(preds), [m for _, m in checks])
 
 
 def _where(owner: str) -> str:

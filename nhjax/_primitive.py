@@ -593,7 +593,7 @@ def call(name: str, fn: Callable, args: tuple, *, options: dict | None = None, e
 def _quick(name, fn, args, options, error_mode):
     leaves, treedef = jtu.tree_flatten(args)
     desc = tuple((tuple(x.shape), np.dtype(x.dtype).str) if eqx.is_array(x) else x for x in leaves)
-    return (name, fn, treedef, desc, tuple(sorted((options or {}).items())), error_mode or _programs._error_mode())
+    return (name, fn, treedef, desc, tuple(sorted((options or {}).items())), error_mode or _programs.error_mode())
 
 
 def _spec(name, fn, args, options, error_mode, forward, reverse, variant_key):

@@ -273,53 +273,149 @@ def _global_names(code: types.CodeType):
     return sorted(names)
 
 
-def _error_mode() -> str:
-    """equinox's runtime-error mode, read while tracing (it changes the program)."""
-    from equinox import _errors
+# ------------------------------------------------------------------ equinox's error mode
+# equinox's runtime checks (eqx.error_if in diffrax, optimistix, lineax and nhjax's own
+# argument checks) are traced as host callbacks ("raise", equinox's default), NaN outputs
+# ("nan": controls' programs, which JAX can then keep on disk) or nothing ("off": a
+# solve's own diffrax checks, batched programs). equinox reads its mode from one module
+# global (EQX_ON_ERROR); nhjax never changes that global. It keeps its own mode instead,
+# per thread, as a JAX configuration state that is part of JAX's trace context: a
+# function traced in one mode (a check, or diffrax's jitted solve around it) is never
+# reused from JAX's in-memory caches in another, and threads that trace at once (the
+# solvers on a threads-only Dask cluster) each trace in their own mode. equinox's check
+# is routed through ``error_mode`` (``_route_checks``, once at import).
+_MODES = ("default", "raise", "nan", "off", "breakpoint")
 
-    return str(getattr(_errors, "EQX_ON_ERROR", "?"))
+
+def _mode_state():
+    """The thread-local mode: a JAX config state in the trace context ("default": as
+    equinox is configured); a plain thread-local stack if this JAX has no such states."""
+    try:
+        from jax._src import config as jax_config
+
+        state = jax_config.config_states.get("nhjax_error_mode")
+        if state is None:
+            state = jax_config.enum_state(
+                "nhjax_error_mode", list(_MODES), "default", include_in_trace_context=True,
+                help="equinox's runtime-error mode while nhjax traces (set by nhjax per thread)")
+        return state
+    except (ImportError, AttributeError, TypeError):  # another JAX: per thread, outside the trace context
+        return _LocalMode()
 
 
-_ERROR_MODE_LOCK = threading.RLock()
+class _LocalMode(threading.local):
+    """The fallback of ``_mode_state``: ``.value`` and ``state(mode)`` as a context."""
 
+    def __init__(self):
+        self.stack = []
 
-@contextlib.contextmanager
-def error_checks(on: bool):
-    """equinox's runtime errors as configured (on) or off while a solve is traced.
-    (equinox reads its EQX_ON_ERROR setting from this module global at trace time; the
-    lock keeps two threads that trace at once -- the eager solve and its diagnostics --
-    from restoring each other's setting.)"""
-    from equinox import _errors
+    @property
+    def value(self):
+        return self.stack[-1] if self.stack else "default"
 
-    if on or not hasattr(_errors, "EQX_ON_ERROR"):
-        yield
-        return
-    with _ERROR_MODE_LOCK:
-        old = _errors.EQX_ON_ERROR
-        _errors.EQX_ON_ERROR = "off"
-        # equinox formats the whole Python stack for every check it traces, also when the
-        # mode makes the check nothing (the solver's own checks here): checks made in the
-        # "off" mode meanwhile return their input at once, which is what equinox returns
-        impl = getattr(_errors, "branched_error_if_impl_jit", None)
-        if impl is not None:
-            _errors.branched_error_if_impl_jit = functools.partial(_off_checks, impl)
+    @contextlib.contextmanager
+    def __call__(self, mode):
+        self.stack.append(mode)
         try:
             yield
         finally:
-            _errors.EQX_ON_ERROR = old
-            if impl is not None:
-                _errors.branched_error_if_impl_jit = impl
+            self.stack.pop()
 
 
-def _off_checks(impl, x, pred, index, msgs, *, on_error):
-    """equinox's branched_error_if_impl_jit (``impl``) for ``_error_checks``: a traced
-    check in the "off" mode is its input, without equinox's reading of the stack."""
+_MODE = _mode_state()
+
+
+def error_mode() -> str:
+    """equinox's runtime-error mode in force in this thread: the innermost ``errors``
+    context's, else equinox's own setting (EQX_ON_ERROR, "raise" by default)."""
+    mode = _MODE.value
+    if mode != "default":
+        return mode
     from equinox import _errors
 
-    mode = _errors.EQX_ON_ERROR if on_error == "default" else on_error
-    if mode == "off" and isinstance(pred, jax.core.Tracer):
-        return x
-    return impl(x, pred, index, msgs, on_error=on_error)
+    return str(getattr(_errors, "EQX_ON_ERROR", "raise"))
+
+
+_error_mode = error_mode  # (for the functions below whose parameter is named error_mode)
+
+
+@contextlib.contextmanager
+def errors(mode: str | None):
+    """equinox's checks traced in ``mode`` ("raise", "nan" or "off"; None: as they are)
+    in this thread until the context closes. Contexts nest; other threads keep theirs."""
+    if mode is None:
+        yield
+        return
+    if mode not in _MODES[1:]:
+        raise ValueError(f"error mode must be one of {_MODES[1:]}, got {mode!r}")
+    with _MODE(mode):
+        yield
+
+
+def error_checks(on: bool):
+    """equinox's runtime errors as configured (on) or off while a solve is traced."""
+    return errors(None if on else "off")
+
+
+def branched_error_if(x, pred, index, msgs, on_error: str = "default"):
+    """``equinox.branched_error_if`` in ``on_error`` ("default": ``error_mode()``). In the
+    modes that show no message ("off": no check; "nan": NaN outputs) a traced check
+    skips what equinox does for a message at every check it traces: formatting every
+    frame of the Python stack (tens of milliseconds in a solve traced inside an
+    optimizer's program), which only "raise" shows. The program is the same as
+    equinox's."""
+    from equinox import _errors
+
+    if on_error == "default":
+        on_error = error_mode()
+    if on_error in ("off", "nan") and isinstance(pred, jax.core.Tracer):
+        if on_error == "off":
+            return x
+        try:
+            from equinox.internal import unvmap_any, unvmap_max
+
+            dynamic, static = eqx.partition(x, eqx.is_array)
+            if jtu.tree_leaves(dynamic):
+                index = index if isinstance(index, int) else unvmap_max(index)
+                dynamic = _errors._error(dynamic, unvmap_any(pred), index, msgs=msgs, on_error="nan", stack=[])
+                return eqx.combine(dynamic, static)
+        except (ImportError, AttributeError, TypeError):  # another equinox: its own way
+            pass
+    if _EQX_CHECK["jit"] is not None and any(eqx.is_array(leaf) for leaf in jtu.tree_leaves((x, pred, index))):
+        return _EQX_CHECK["jit"](x, pred, index, msgs, on_error=on_error)  # equinox's own (not routed again)
+    return eqx.branched_error_if(x, pred, index, msgs, on_error=on_error)
+
+
+_EQX_CHECK = {"jit": None, "plain": None}
+
+
+def _route_checks():
+    """Route equinox's own traced checks (``branched_error_if_impl_jit``, which
+    ``eqx.error_if`` and ``eqx.branched_error_if`` call with on_error="default") through
+    ``branched_error_if``, so that they follow this thread's ``error_mode``; and its
+    untraced ones (``branched_error_if_impl``, for Python booleans) likewise. Nothing is
+    done if equinox has no such functions (another version: its checks then follow
+    EQX_ON_ERROR only)."""
+    from equinox import _errors
+
+    jit_impl = getattr(_errors, "branched_error_if_impl_jit", None)
+    plain_impl = getattr(_errors, "branched_error_if_impl", None)
+    if jit_impl is None or plain_impl is None or getattr(jit_impl, "_nhjax", False):
+        return
+    _EQX_CHECK.update(jit=jit_impl, plain=plain_impl)
+
+    def routed(x, pred, index, msgs, *, on_error="default"):
+        return branched_error_if(x, pred, index, msgs, on_error)
+
+    def routed_plain(x, pred, index, msgs, *, on_error="default"):
+        return plain_impl(x, pred, index, msgs, on_error=error_mode() if on_error == "default" else on_error)
+
+    routed._nhjax = routed_plain._nhjax = True
+    _errors.branched_error_if_impl_jit = routed
+    _errors.branched_error_if_impl = routed_plain
+
+
+_route_checks()
 
 
 def fingerprint(*objs, error_mode: str | None = None) -> str:

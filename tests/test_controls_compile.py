@@ -322,44 +322,47 @@ def test_a_new_process_loads_the_solvers_programs_instead_of_tracing_them(tmp_pa
     assert second["status"] == first["status"]
 
 
-def test_nan_errors_restores_the_setting_whatever_order_threads_leave_in():
-    """equinox's error setting is one global for all threads. Two threads whose
-    ``nan_errors`` contexts overlap (as the solvers of a threads-only Dask cluster's
-    workers do) and close in the order they opened: the second keeps its own mode after
-    the first has left, and the setting from before both comes back when the last
-    closes (restoring each context's predecessor left "off" in force for good, and a
-    later jitted simulate() raised no runtime error)."""
+def test_error_modes_are_per_thread_and_part_of_the_trace():
+    """equinox's error mode is nhjax's per thread (``nhjax._programs.errors``, which
+    ``nan_errors`` is): two threads whose contexts overlap (as the solvers of a
+    threads-only Dask cluster's workers do) call one jitted ``eqx.error_if`` on a bad
+    input while both contexts are open, and each gets its own mode's program: NaN in
+    "nan", the input in "off". Afterwards, and while they ran, the main thread's call
+    raises (neither trace is reused outside its mode), nested contexts come back to the
+    outer one, and equinox's own global setting was never changed."""
     import threading
 
     from equinox import _errors
 
     from controls.problem import nan_errors
+    from nhjax import _programs
 
     before = _errors.EQX_ON_ERROR
-    a_in, b_in, a_out = threading.Event(), threading.Event(), threading.Event()
+    checked = jax.jit(lambda x: eqx.error_if(x, x < 0, "negative input"))
+    both_in, done = threading.Barrier(3, timeout=20), threading.Barrier(3, timeout=20)
     seen = {}
 
-    def first():
-        with nan_errors("off"):
-            a_in.set()
-            b_in.wait(10)
-        a_out.set()
+    def run(mode):
+        with nan_errors(mode):
+            both_in.wait()  # the other thread's context is open too
+            seen[mode] = (_programs.error_mode(), float(checked(jnp.asarray(-1.0))))
+            done.wait()
 
-    def second():
-        a_in.wait(10)
-        with nan_errors("nan"):
-            b_in.set()
-            a_out.wait(10)
-            seen["second, after the first left"] = _errors.EQX_ON_ERROR
-        seen["after both"] = _errors.EQX_ON_ERROR
-
-    threads = [threading.Thread(target=first), threading.Thread(target=second)]
+    threads = [threading.Thread(target=run, args=(m,)) for m in ("nan", "off")]
     for t in threads:
         t.start()
+    both_in.wait()
+    with pytest.raises(Exception, match="negative input"):  # the main thread meanwhile: as configured
+        checked(jnp.asarray(-1.0)).block_until_ready()
+    done.wait()
     for t in threads:
         t.join(20)
-    assert seen == {"second, after the first left": "nan", "after both": before}
-    assert _errors.EQX_ON_ERROR == before
-    with nan_errors("off"), nan_errors("nan"):  # nested in one thread: back to the outer mode
-        pass
-    assert _errors.EQX_ON_ERROR == before
+    assert seen["off"] == ("off", -1.0)
+    assert seen["nan"][0] == "nan" and np.isnan(seen["nan"][1])
+    with pytest.raises(Exception, match="negative input"):
+        checked(jnp.asarray(-1.0)).block_until_ready()
+    with nan_errors("off"):
+        with nan_errors("nan"):
+            assert _programs.error_mode() == "nan"
+        assert _programs.error_mode() == "off"
+    assert _programs.error_mode() == before == _errors.EQX_ON_ERROR

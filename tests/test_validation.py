@@ -317,9 +317,13 @@ def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):
     gives NaN outputs, a good one the eager solve's state."""
     import traceback
 
-    from controls.problem import _clear_error_traces, nan_errors
+    from controls.problem import nan_errors
+    from nhjax import _programs
 
-    _clear_error_traces()  # (equinox caches its traced checks; a cached one reads no stack either)
+    def _clear_error_traces():  # (equinox caches its traced checks; a cached one reads no stack either)
+        _programs._EQX_CHECK["jit"]._cached.clear_cache()
+
+    _clear_error_traces()
     walks = []
     real_walk = traceback.walk_stack
     monkeypatch.setattr(traceback, "walk_stack", lambda f: (walks.append(1), real_walk(f))[1])

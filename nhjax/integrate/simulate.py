@@ -909,7 +909,7 @@ def simulate(
     if traced and (static.progress or _programs.directory() is None or _programs.tracing_stored()):
         # traced into the caller's program (inside a stored program's own trace, e.g. an
         # optimal-control solver's; with the cache off; with a progress bar's callback)
-        static = dataclasses.replace(static, error_mode=_programs._error_mode())
+        static = dataclasses.replace(static, error_mode=_programs.error_mode())
         traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
                       show)
     elif traced:
