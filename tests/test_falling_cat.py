@@ -183,6 +183,9 @@ def test_rkmk_attitudes_reconstruct_the_chart(torque_run):
         assert np.abs(np.asarray(ta.invariants[f"angular_momentum_{k}"])).max() < 1e-9
 
 
+@pytest.mark.slow(reason="forward mode through simulate against differences runs in the default run in "
+                         "test_one_function (diffrax.ForwardMode) and test_first_answers (defaults); the "
+                         "curvature F12 in test_small_loops_match_curvature_integral")
 def test_gradient_of_turn_matches_fd_and_closed_form():
     """Forward-mode derivative of the achieved turn in the loop parameters (theta0, theta1,
     t_twist) against central differences and against -2 pi F12(theta1)."""

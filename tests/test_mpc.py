@@ -330,11 +330,6 @@ def test_a_plant_on_so3_is_measured_into_the_models_coordinates():
     np.testing.assert_allclose(float(lie.cost), float(chart.cost), rtol=1e-10)
     final = np.asarray(jax.vmap(_chart_of_attitudes)(jax.tree_util.tree_map(lambda a: a[-1:], lie.trajectory.xs)))
     np.testing.assert_allclose(final[0], xs[-1], rtol=0, atol=1e-7)
-    # stepped from Python (timing=True: one compiled call per period), the same loop
-    timed = closed_loop(mpc, att, y0, 3, plant_substeps=4, measure=_chart_of_attitudes, pushes=kick_lie,
-                        timing=True)
-    np.testing.assert_allclose(np.asarray(timed.measurements), ys[:3], rtol=0, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(timed.trajectory.xs[0]), np.asarray(lie.trajectory.xs[0][:4]), atol=1e-12)
     for g in np.asarray(lie.trajectory.xs[0]), np.asarray(lie.trajectory.xs[1]):
         np.testing.assert_allclose(np.einsum("kji,kjl->kil", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-12)
     with pytest.raises(MPCError, match="measure="):
@@ -345,6 +340,27 @@ def test_a_plant_on_so3_is_measured_into_the_models_coordinates():
         closed_loop(mpc, att, y0, 3, measure=_chart_of_attitudes, pushes=[(0.3, lambda y: y[2])])
     with pytest.raises(MPCError, match="5 numbers"):
         closed_loop(mpc, att, y0, 3, measure=lambda y: y[2])
+
+
+@pytest.mark.slow(reason="compiles the per-period step and plant programs (as test_timed_loop_is_the_scanned_loop); "
+                         "the default-run test_a_plant_on_so3_is_measured_into_the_models_coordinates runs the "
+                         "same measured loop as one scan")
+def test_a_measured_plant_steps_the_same_from_python():
+    """closed_loop(timing=True) on a plant measured into the model's coordinates (the
+    attitude cat of the test above): one compiled call per period gives the scanned
+    loop's measurements and attitudes."""
+    mpc, _ = _regulator()
+    att = CAT.attitude_model()
+    y0 = att.initial_state(theta=0.6, chi=0.4, theta_dot=0.3, chi_dot=-0.5)
+    kick_lie = [(0.3, lambda y: (y[0], y[1], y[2].at[2].add(1.0)))]
+    kw = dict(plant_substeps=4, measure=_chart_of_attitudes, pushes=kick_lie)
+    scanned = closed_loop(mpc, att, y0, 5, **kw)
+    timed = closed_loop(mpc, att, y0, 5, timing=True, **kw)
+    assert np.abs(np.diff(np.asarray(scanned.measurements)[:, 3])).max() > 0.5  # the kick (t = 0.3 s) is inside the 5 periods
+    np.testing.assert_allclose(np.asarray(timed.measurements), np.asarray(scanned.measurements), rtol=0, atol=1e-12)
+    for a, b in zip(timed.trajectory.xs, scanned.trajectory.xs):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
+    assert np.all(np.asarray(timed.status.solve_ms) > 0)
 
 
 def _mark(folder, index):
