@@ -8,7 +8,14 @@ optimality conditions that applies to any solution, and grids of problems of one
 structure solved in one program (``solve_pontryagin_batch``, ``solve_direct_batch``), and closed-loop
 model-predictive control (``MPC``, ``closed_loop``, ``closed_loop_batch``)."""
 
-from .batch import BatchResult, DirectBatchResult, GridError, solve_direct_batch, solve_pontryagin_batch
+from .batch import (
+    BatchResult,
+    DirectBatchResult,
+    GridError,
+    solve_direct_batch,
+    solve_pontryagin_batch,
+    stack_members,
+)
 from .direct import DirectResult, solve_direct
 from .mpc import MPC, ClosedLoop, MPCError, MPCStatus, Plan, box_qp, closed_loop, closed_loop_batch
 from .newton import solve_direct_newton
@@ -59,4 +66,5 @@ __all__ = [
     "solve_direct_sqp",
     "solve_pontryagin",
     "solve_pontryagin_batch",
+    "stack_members",
 ]

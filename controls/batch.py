@@ -3,11 +3,12 @@
 problems of one structure at once.
 
 ``solve_pontryagin_batch(ocps, p0_guess, nu_guess)`` takes a list of ``OCP``s that
-differ in numbers only (x0, targets, the horizon T, weights, the system's parameters)
-and solves them all in one compiled program: the members' numbers are stacked on a
+differ in numbers only (x0, targets, the horizon T, weights, the system's parameters),
+or their stack (``stack_members``), and solves them all in one compiled program: the members' numbers are stacked on a
 leading axis and ``solve_pontryagin``'s whole root find (``_indirect_body``: Newton or
 Levenberg–Marquardt on the shooting residual, the extremal and its cost) runs over
-them, ``lanes`` members side by side (vmapped) and the groups one after another.
+them, ``lanes`` members side by side (vmapped; by default one) and the groups one
+after another.
 Within a group the iteration runs until every member has stopped; a member that
 stopped keeps its values (JAX's batched while loop selects them), so it is the same
 solve as alone, to rounding. The program is one per structure and batch size and is
@@ -90,7 +91,15 @@ def stack_members(members, *, owner: str = "stack_members", what: str = "member"
     """One pytree whose number leaves (arrays and floats, ``_is_number``) are the
     members' leaves stacked on a new leading axis; everything else must be equal
     across members. Raises ``GridError`` naming the first member and field that
-    differ (types, tree structure, an array's shape, a non-number leaf)."""
+    differ (types, tree structure, an array's shape, a non-number leaf).
+
+    Stacked ``OCP``s are a grid that ``solve_pontryagin_batch`` takes in place of their
+    list; a field can then be set for every member at once, e.g. B targets from one
+    problem stacked B times::
+
+        grid = controls.stack_members([ocp] * B)
+        grid = eqx.tree_at(lambda g: g.terminal_constraints.target, grid, targets)  # (B, m)
+    """
     members = list(members)
     if not members:
         raise ProblemError(f"{owner}: no {what}s: pass a non-empty list")
@@ -184,6 +193,25 @@ def _problem_list(ocps, owner):
         if not isinstance(o, OCP):
             raise ProblemError(f"{owner}: member {i} is a {type(o).__name__}, not a controls.OCP")
     return ocps
+
+
+def _stacked_problem(ocps, owner):
+    """(stack, its first member, B) when ``ocps`` is a stack of problems
+    (``stack_members``: an OCP whose vector x0 has a leading member axis, as no OCP
+    built by ``OCP(...)`` has), else None. Every number leaf of a stack must have the
+    members on axis 0 (``GridError`` naming the first that has not)."""
+    if not (isinstance(ocps, OCP) and getattr(ocps.x0, "ndim", 1) == 2):
+        return None
+    B = int(ocps.x0.shape[0])
+    for path, leaf in jtu.tree_flatten_with_path(ocps)[0]:
+        if _is_number(leaf) and (np.ndim(leaf) == 0 or np.shape(leaf)[0] != B):
+            raise GridError(f"{owner}: a stack of {B} problems (x0 of shape {tuple(ocps.x0.shape)}) has "
+                            f"{_path_name(path)} of shape {np.shape(leaf)}: every number of a stack has the "
+                            f"{B} members on axis 0 (build it with controls.stack_members)")
+    if B == 0:
+        raise ProblemError(f"{owner}: a stack of no problems: pass a non-empty list of OCPs")
+    first = jtu.tree_map(lambda a: a[0] if _is_number(a) else a, ocps)
+    return ocps, first, B
 
 
 @dataclasses.dataclass(frozen=True)
@@ -283,14 +311,20 @@ def solve_pontryagin_batch(
     tol: float = 1e-10,
     max_steps: int = 25,
     max_ode_steps: int = 2048,
-    lanes: int = 8,
+    lanes: int = 1,
     grid: tuple | None = None,
     grid_rounds: int = 8,
     progress: bool = True,
 ) -> BatchResult:
     """Single-shooting Pontryagin solves of many problems of one structure in one program.
 
-    ocps : a list of B ``OCP``s that differ in numbers only (``GridError`` otherwise).
+    ocps : a list of B ``OCP``s that differ in numbers only (``GridError`` otherwise), or
+        their stack (``controls.stack_members(ocps)``: every number with the members on
+        axis 0), in which a field can be set for the whole grid at once
+        (``eqx.tree_at(lambda s: s.terminal_constraints.target, stack, targets)``, with
+        ``targets`` (B, m)) instead of rebuilding B problems. A stack's members are
+        checked as one structure and for finite numbers, not one by one as OCPs (a
+        start outside a chart shows in that member's status).
     p0_guess : (n,) the same costate guess for every member, or (B, n) one per member
         (default zeros); nu_guess : (m,) or (B, m) likewise for the multipliers.
     solver, u_star, rtol, atol, tol : as ``solve_pontryagin`` (shared).
@@ -303,8 +337,11 @@ def solve_pontryagin_batch(
         steps; a member over either budget stops with its status saying so.
     lanes : members solved side by side (vmapped, in lockstep: a group takes its
         slowest member's iterations and ODE steps); the groups run one after
-        another in the same program. A few lanes let XLA vectorize across members
-        without making many wait for the slowest.
+        another in the same program. Default 1, each member's loops on their own:
+        on the somersault grids, vmapped lanes ran no faster where the members take
+        the same steps, and slower where they differ (the map over turns and bends:
+        a group waits for its slowest member, and the batched loops select instead of
+        branching).
     grid : the members' grid shape (members in C order over it, e.g. (16, 16) for
         16 x 16 problems), for continuation along the grid: after the first pass,
         each member that did not converge is solved again from the solution of its
@@ -325,17 +362,24 @@ def solve_pontryagin_batch(
     """
     owner = "solve_pontryagin_batch"
     t_start = time.perf_counter()
-    ocps = _problem_list(ocps, owner)
-    for o in ocps:
-        _check_pontryagin(o, owner, solver, u_star)
+    given = _stacked_problem(ocps, owner)
+    if given is None:
+        ocps = _problem_list(ocps, owner)
+        for o in ocps:
+            _check_pontryagin(o, owner, solver, u_star)
+    else:
+        _check_pontryagin(given[1], owner, solver, u_star)
     check_tolerances(owner, rtol=rtol, atol=atol, tol=tol, max_steps=(max_steps, "int"),
                      max_ode_steps=(max_ode_steps, "int"), lanes=(lanes, "int"), grid_rounds=(grid_rounds, "int"))
-    B = len(ocps)
+    if given is None:
+        stacked = stack_members(ocps, owner=owner, what="problem")  # structure first, before any numerics
+        first, B = ocps[0], len(ocps)
+    else:
+        stacked, first, B = given
     coords = None if grid is None else _grid_coordinates(grid, B, owner)
     rt, at = host_array(rtol), host_array(atol)
-    stacked = stack_members(ocps, owner=owner, what="problem")  # structure first, before any numerics
-    sh = _Shooting(HamiltonianSystem(ocps[0], u_star), rt, at, 1, int(max_ode_steps))
-    n, m = ocps[0].x0.shape[0], ocps[0].n_constraints
+    sh = _Shooting(HamiltonianSystem(first, u_star), rt, at, 1, int(max_ode_steps))
+    n, m = first.x0.shape[0], first.n_constraints
     P0, NU = _guesses("p0_guess", p0_guess, B, n, owner), _guesses("nu_guess", nu_guess, B, m, owner)
     z0 = np.concatenate([P0, NU], axis=1)
     stacked, z0, finite = _screen(stacked, z0, owner)
@@ -538,6 +582,9 @@ def solve_direct_batch(
     """
     owner = "solve_direct_batch"
     t_start = time.perf_counter()
+    if _stacked_problem(ocps, owner) is not None:
+        raise ProblemError(f"{owner} takes a list of OCPs (each member's SQP runs on the host); a stack of "
+                           "problems (controls.stack_members) is for solve_pontryagin_batch")
     ocps = _problem_list(ocps, owner)
     B = len(ocps)
     params = list(param) if isinstance(param, (list, tuple)) else [param] * B

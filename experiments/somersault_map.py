@@ -68,18 +68,20 @@ def solve_map(cat, bends, turns, stages, progress=False):
     hol = holonomy(cat, TH)
     p0, nu = zip(*(fixed_theta_costates(cat, th, T) for th in TH))
     z = np.concatenate([np.stack(p0), np.stack(nu)], axis=1)
-    ocps = [velocity_somersault_chart(cat, th, tu, T) for th, tu in zip(TH, TU)]
+    # the grid as one stack of problems: one problem built and checked, the members'
+    # starts and targets set for all at once (the members differ in these numbers only)
+    base = velocity_somersault_chart(cat, TH[0], TU[0], T)
+    grid = controls.stack_members([base] * TH.size)
+    x0s = np.stack([TH, np.zeros_like(TH), np.zeros_like(TH)], axis=1)
+    final = np.stack([TH, np.full_like(TH, 2 * np.pi), TU], axis=1)
+    grid = eqx.tree_at(lambda g: (g.x0, g.terminal_constraints.target), grid, (x0s, final))
     for k in range(1, stages + 2):
         # the stages walk at loose tolerances (the way there needs no accuracy: fewer ODE
         # steps); the last solve polishes the final turn at solve_pontryagin's defaults
         tols = dict(rtol=1e-8, atol=1e-8, tol=1e-6) if k <= stages else {}
-        turn = hol + (TU - hol) * min(k, stages) / stages
-        # the members differ from the final problems in the target turn only
-        # (numpy targets: an eager jax update per member would be a dispatched program each)
-        targets = np.stack([np.asarray(o.terminal_constraints.target) for o in ocps])
-        targets[:, 2] = turn
-        stage = [eqx.tree_at(lambda o: o.terminal_constraints.target, o, g)
-                 for o, g in zip(ocps, targets)] if k < stages else ocps
+        targets = final.copy()
+        targets[:, 2] = hol + (TU - hol) * min(k, stages) / stages
+        stage = eqx.tree_at(lambda g: g.terminal_constraints.target, grid, targets)
         r = controls.solve_pontryagin_batch(stage, z[:, :3], z[:, 3:], progress=progress, **tols)
         # a member that failed at a stage keeps its last good start (its status says so at the end)
         z = np.where(r.converged[:, None], np.concatenate([r.p0, r.nu], axis=1), z)

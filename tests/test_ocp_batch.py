@@ -7,6 +7,7 @@ meet the loop's closed-form extremal, members that differ in structure are refus
 before any numerics, and a member that fails (or holds NaN) does not spoil the others.
 """
 
+import equinox as eqx
 import numpy as np
 import pytest
 
@@ -62,6 +63,21 @@ def test_each_member_is_its_own_solve_and_the_loop_members_are_exact():
     ts, xs, us = r.ts[1], r.xs[1], r.controls[1]
     theta = xs[0, 0] + np.concatenate([[0.0], np.cumsum(0.5 * (us[1:, 0] + us[:-1, 0]) * np.diff(ts))])
     assert np.abs(theta - xs[:, 0]).max() < 1e-4
+    # the same grid as one stack of problems gives the same answers; a field set for the
+    # whole stack at once (members 1 and 2 back on their loops' holonomy) gives each
+    # member its new problem's answer: the loop's closed form; member 0 is untouched
+    stack = controls.stack_members(ocps)
+    again = controls.solve_pontryagin_batch(stack, z[:, :3], z[:, 3:], progress=False)
+    np.testing.assert_array_equal(again.cost, r.cost)
+    np.testing.assert_array_equal(again.p0, r.p0)
+    targets = np.array(stack.terminal_constraints.target)
+    targets[1:3, 2] = [_holonomy(cat, 0.6), _holonomy(cat, 0.7)]
+    on_loops = controls.solve_pontryagin_batch(eqx.tree_at(lambda g: g.terminal_constraints.target, stack, targets),
+                                               z[:, :3], z[:, 3:], progress=False)
+    assert on_loops.converged.all() and on_loops.cost[0] == r.cost[0]
+    for k, th in ((1, 0.6), (2, 0.7)):
+        assert abs(on_loops.cost[k] - _loop_cost(cat, th)) < 1e-10 * _loop_cost(cat, th)
+        assert abs(on_loops.cost[k] - r.cost[k]) > 1e-3 * r.cost[k]  # (a new problem, not the old answer)
 
 
 def test_members_that_differ_in_structure_are_refused_by_name():
@@ -78,6 +94,10 @@ def test_members_that_differ_in_structure_are_refused_by_name():
         controls.solve_pontryagin_batch([chart, chart], np.zeros((3, 3)), progress=False)
     with pytest.raises(controls.ProblemError, match="non-empty"):
         controls.solve_pontryagin_batch([], progress=False)
+    # a stack whose horizon was set without the members' axis
+    bad = eqx.tree_at(lambda g: g.T, controls.stack_members([chart, chart]), np.asarray(T))
+    with pytest.raises(controls.GridError, match=r"\.T of shape \(\)"):
+        controls.solve_pontryagin_batch(bad, progress=False)
 
 
 def test_a_failing_member_does_not_spoil_the_others():
@@ -198,3 +218,5 @@ def test_direct_batch_refuses_members_of_other_structure_by_name():
         controls.solve_direct_batch([chart, chart], [param] * 3, progress=False)
     with pytest.raises(controls.ProblemError, match=r"shape \(22,\).*\(2, 22\)"):
         controls.solve_direct_batch([chart, chart], param, np.zeros((3, 22)), progress=False)
+    with pytest.raises(controls.ProblemError, match="is for solve_pontryagin_batch"):
+        controls.solve_direct_batch(controls.stack_members([chart, chart]), param, progress=False)

@@ -278,6 +278,8 @@ PROBES = {
     "controls.prepare_pmp_residual": lambda: controls.prepare_pmp_residual(_ocp(), "not a control"),
     "controls.continuation": lambda: controls.continuation(lambda v, z: None, []),
     "controls.solve_pontryagin_batch": lambda: controls.solve_pontryagin_batch([_ocp(), _ocp()], rtol=-1.0),
+    "controls.stack_members": lambda: controls.stack_members([_ocp(), controls.OCP(
+        _ocp().system, _ocp().x0, 1.0, _ocp().running_cost)]),  # another structure: a GridError
     "controls.solve_direct_batch": lambda: controls.solve_direct_batch(
         [_ocp(), _ocp()], controls.PiecewiseLinear(4, 1.0, 1), lanes=0),
     "controls.MPC": lambda: controls.MPC(_ocp(), -0.1, 10),
