@@ -46,7 +46,10 @@ def _cat_params():
     return (TORQUE.amplitude, jnp.asarray(0.3157894736842105), FallingCat().initial_state(0.8, chi_dot=0.5))
 
 
-@pytest.mark.parametrize("saveat", [pytest.param(2, marks=pytest.mark.slow), 41,
+# (all slow: the default run compares DiscreteAdjoint's gradient with the differentiated
+# loop's, RecursiveCheckpointAdjoint under jax.jit, to 1e-12 and with differences in
+# test_first_answers; these add saved states' cotangents and a system parameter)
+@pytest.mark.parametrize("saveat", [pytest.param(2, marks=pytest.mark.slow), pytest.param(41, marks=pytest.mark.slow),
                                     pytest.param("uneven", marks=pytest.mark.slow)])
 def test_cat_gradient_equals_differentiated_loop_and_fd(saveat):
     if saveat == "uneven":  # save times bunched and spread, one at t0, one at t1
@@ -66,7 +69,7 @@ def test_cat_gradient_equals_differentiated_loop_and_fd(saveat):
     np.testing.assert_allclose(got, np.asarray(fd), rtol=2e-5)
 
 
-@pytest.mark.slow  # (17 s; tangents on defaults are checked by test_first_answers and the [41] case above)
+@pytest.mark.slow  # (17 s; tangents on defaults are checked by test_first_answers)
 def test_tangents_mode_agrees_with_the_differentiated_loop():
     """Forward sensitivities carried through the solve ("tangents"), here with all D = 9
     inputs of the cat loss (amplitudes, lam, initial state; saved states and work)."""
@@ -232,7 +235,7 @@ def test_projected_steps_gradient():
     np.testing.assert_allclose(g_disc, fd, rtol=1e-5)
 
 
-@pytest.mark.slow  # (batched solves = one by one: test_batch; the discrete adjoint's gradient: the [41] case above; make test-all)
+@pytest.mark.slow  # (batched solves = one by one: test_batch; the discrete adjoint's gradient: test_first_answers; make test-all)
 def test_vmapped_gradients_equal_one_by_one():
     """A batch of gradients whose members take different numbers of steps."""
     cat = FallingCat()
