@@ -230,7 +230,7 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
     from .mpc import MPCError, _batch_inputs
 
     owner = "closed_loop_batch_on_client"
-    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx = _batch_inputs(
+    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, _ = _batch_inputs(
         mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner)
     B = X.shape[0]
     if chunk_members is None:

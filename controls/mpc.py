@@ -770,8 +770,9 @@ def _plant_checks(mpc, plant, owner, batched=False, measured=False):
                        f"{type(plant).__name__}")
     n = mpc.ocp.x0.shape[0]
     if not measured and not isinstance(plant.spaces, Euclidean):
-        hint = ("pass measure= (the model's state from the plant's) to closed_loop" if owner == "closed_loop" else
-                "run such plants one by one with closed_loop(..., measure=...)")
+        hint = (f"pass measure= (the model's state from the plant's) to {owner}"
+                if owner in ("closed_loop", "closed_loop_batch") else
+                "run such plants with closed_loop_batch(..., measure=...)")
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__} has "
                        f"spaces {plant.spaces!r}, the controller's model {type(model).__name__} a vector of {n} "
                        f"numbers; {hint}")
@@ -1015,17 +1016,17 @@ def _draws_program(mpc, key_data, periods, plant_substeps, force_sd, meas_sd):
 
 @compiled(errors="off")
 def _batch_program(mpc, plant, plant_axis, X, u0, t0, key_data, push_t, push_dx, fsd, msd, periods, plant_substeps,
-                   group):
+                   group, measure=None, push_fns=()):
     def member(pl, x0, kd, pt, pdx):
-        plan = _init_plan(mpc, x0, u0, t0)
+        plan = _init_plan(mpc, x0 if measure is None else measure(x0), u0, t0)
         return _loop(mpc, pl, x0, plan, t0, jax.random.wrap_key_data(kd), pt, pdx, fsd, msd, periods,
-                     plant_substeps)
+                     plant_substeps, measure, push_fns)
 
     # groups of ``group`` members vmapped together, the groups one after the other
     # (lax.map): the loops of a small group stay small enough for XLA to compile each as
     # one function (nhjax._xla_flags), where one vmap over all members runs them kernel by
     # kernel with every kernel as wide as the batch
-    B = X.shape[0]
+    B = jtu.tree_leaves(X)[0].shape[0]
     n_groups = -(-B // group)
     pad = n_groups * group - B
 
@@ -1040,7 +1041,8 @@ def _batch_program(mpc, plant, plant_axis, X, u0, t0, key_data, push_t, push_dx,
     else:
         vm = eqx.filter_vmap(lambda *a: member(plant, *a))
         xs = ()
-    out = jax.lax.map(lambda t: vm(*t), xs + (grouped(X), grouped(key_data), grouped(push_t), grouped(push_dx)))
+    out = jax.lax.map(lambda t: vm(*t), xs + (jtu.tree_map(grouped, X), grouped(key_data), grouped(push_t),
+                                             grouped(push_dx)))
     return jtu.tree_map(lambda a: a.reshape((n_groups * group,) + a.shape[2:])[:B], out)
 
 
@@ -1189,11 +1191,12 @@ def _key_data(key, fsd, msd, owner, members=None):
 
 
 def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps,
-                  group, owner):
+                  group, owner, measure=None):
     """``closed_loop_batch``'s arguments checked (MPCError before any numerics) and put in
-    the program's form: (plant_axis, periods, plant_substeps, group, X (B, n) numpy, force
-    and measurement noise levels, the keys' raw data (B, ...), pushes' times (B, P) and
-    increments (B, P, n))."""
+    the program's form: (plant_axis, periods, plant_substeps, group, X (B, n) numpy (with
+    ``measure``: the plant's states, every leaf with the members on axis 0), force and
+    measurement noise levels, the keys' raw data (B, ...), pushes' times (B, P) and
+    increments (B, P, n), the pushes' functions (``measure``; else ()))."""
     in_axes = dict(in_axes or {})
     unknown = set(in_axes) - {"plant"}
     if unknown:
@@ -1201,10 +1204,20 @@ def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measur
     plant_axis = in_axes.get("plant")
     if plant_axis not in (None, 0):
         raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
-    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0)
+    periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, batched=plant_axis == 0,
+                                     measured=measure is not None)
     with as_problem_error():
         group = V.integer("group", group, minimum=1, owner=owner)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
+    if measure is not None:
+        X, B, push_t, push_fns = _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner)
+        fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n,
+                                                                         owner)
+        if keys is not None and jnp.shape(keys)[:1] != (B,):
+            raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
+        key_data = _key_data(keys, fsd, msd, owner, members=B)
+        push_dx = np.zeros(push_t.shape + (n,))
+        return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, push_fns
     X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
     if X.ndim != 2 or X.shape[1] != n:
         raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
@@ -1219,12 +1232,44 @@ def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measur
     push_t, push_dx = _pushes(pushes, n, (B,), owner)
     if push_t.shape[0] != B:
         raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
-    return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx
+    return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, ()
+
+
+def _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner):
+    """A batch of measured plants' starts (``x0s``: the plant's state with the members on
+    axis 0 of every leaf): (X on the host, B, pushes' times (B, P), their functions).
+    Member 0 is checked as ``closed_loop``'s start (``_measured_plant``); every member
+    must have its structure and shapes and finite numbers. Pushes: (time, function)
+    pairs shared by all members."""
+    leaves = jtu.tree_leaves(x0s)
+    sizes = {np.shape(a)[0] if np.ndim(a) else None for a in leaves}
+    if not leaves or len(sizes) != 1 or None in sizes or 0 in sizes:
+        raise MPCError(f"{owner}: with measure=, x0s is the plant's state with the members on axis 0 of every "
+                       f"part (one start per member), got parts of shapes {[np.shape(a) for a in leaves]}")
+    (B,) = sizes
+    X = jtu.tree_map(lambda a: np.asarray(a, dtype=float), x0s)
+    plant0 = jtu.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plant) if plant_axis == 0 else plant
+    first = _measured_plant(mpc, plant0, jtu.tree_map(lambda a: a[0], X), measure, owner)
+    if jtu.tree_structure(first) != jtu.tree_structure(X) or any(
+            np.shape(a) != np.shape(b)[1:] for a, b in zip(jtu.tree_leaves(first), jtu.tree_leaves(X))):
+        raise MPCError(f"{owner}: x0s must have the plant's state structure with a leading member axis on every "
+                       "part")
+    finite = np.ones(B, bool)
+    for a in jtu.tree_leaves(X):
+        finite &= np.all(np.isfinite(a.reshape(B, -1)), axis=1)
+    if not finite.all():
+        raise MPCError(f"{owner}: x0s contains NaN or inf in members {np.flatnonzero(~finite).tolist()}; pass "
+                       "finite starts")
+    if isinstance(pushes, tuple) and len(pushes) == 2 and all(isinstance(p, np.ndarray) for p in pushes):
+        raise MPCError(f"{owner}: pushes on measured plants are (time [s], function of the plant's state) pairs "
+                       "shared by all members")
+    times, fns = _push_functions(pushes, first, owner)
+    return X, B, np.broadcast_to(times, (B, times.size)).copy(), fns
 
 
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,
                       force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None,
-                      group=4) -> ClosedLoop:
+                      group=4, measure=None) -> ClosedLoop:
     """B closed loops (``closed_loop``'s arguments, one member per row of ``x0s`` (B, n))
     in one compiled program: ``closed_loop``'s ``lax.scan`` over periods, vmapped over
     groups of ``group`` members, the groups one after the other (``lax.map``; the last
@@ -1247,6 +1292,10 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         a member without that push).
     keys : (B,) PRNG keys (``jax.random.split(key, B)``), required with noise.
     group : members vmapped together (default 4).
+    measure : as ``closed_loop``'s, for plants with a state of their own: ``x0s`` is
+        then the plant's state with the members on axis 0 of every part (e.g. B
+        attitudes (B, 3, 3)), and ``pushes`` are (time [s], function of the plant's
+        state) pairs shared by all members.
 
     How it relates to ``nhjax.simulate_batch``: that function steps adaptive solves of
     unequal length in lanes and refills a lane when its member ends; here every member
@@ -1259,14 +1308,21 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     ``controls.distributed.closed_loop_batch_on_client`` (chunks of members on the
     workers of a Dask cluster, joined into one result)."""
     owner = "closed_loop_batch"
-    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx = _batch_inputs(
-        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner)
-    B = X.shape[0]
-    plan0 = mpc.init(X[0], u_guess, t0)
+    plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, push_fns = _batch_inputs(
+        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner,
+        measure)
+    B = jtu.tree_leaves(X)[0].shape[0]
+    if measure is None:
+        y0 = X[0]
+    else:  # the model's start of member 0 (noise-free): the first plan's inputs
+        n = mpc.ocp.x0.shape[0]
+        y0 = _measure_program(measure, jtu.tree_map(lambda a: host_array(a[0]), X), host_array(np.zeros(n)))
+    plan0 = mpc.init(y0, u_guess, t0)
     t0a = host_array(t0)
     if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members
         mpc = _with_qp(mpc, "riccati")
     xs, ys, us, status, J, drift = _batch_program(
-        mpc, plant, plant_axis, jnp.asarray(X), plan0.u, t0a, key_data, jnp.asarray(push_t),
-        jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps, min(group, B))
+        mpc, plant, plant_axis, jtu.tree_map(jnp.asarray, X), plan0.u, t0a, key_data, jnp.asarray(push_t),
+        jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps, min(group, B), measure,
+        push_fns)
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

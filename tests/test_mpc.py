@@ -297,54 +297,73 @@ def _chart_of_attitudes(y):
     return jnp.stack([s[0], s[1], jnp.arctan2(R[0, 2], R[0, 0]), s[2], s[3]])
 
 
-def test_a_plant_on_so3_is_measured_into_the_models_coordinates():
+def test_plants_on_so3_are_measured_into_the_models_coordinates():
     """The regulator against the cat integrated on SO(3) x SO(3) (FallingCatAttitudes:
     psi is no coordinate there; the turn is carried by the attitudes, stepped by RKMK4)
-    and measured into the model's coordinates by ``measure``: the loop equals the one
-    against the chart plant (RK4 on psi) to the two integrators' difference (the shape
-    to round-off, psi to 1e-7 at 4 plant steps per interval), the cost and inputs with
-    it, through a kick given as a map of each plant's state; the attitudes stay
-    rotations. Without ``measure`` such a plant is refused, and so are a push that is
-    not a map of the plant's state and a measure of the wrong size."""
+    and measured into the model's coordinates by ``measure``, two members in one
+    ``closed_loop_batch`` (group 1): each member's loop equals the one against the chart
+    plant from its start (RK4 on psi, one loop at a time) to the two integrators'
+    difference (the shape to the QPs' last digits, psi to 1e-7 at 4 plant steps per
+    interval), the cost and inputs with it, through a kick given as a map of each
+    plant's state; the attitudes stay rotations. Without ``measure`` such plants are
+    refused, and so are a push that is not a map of the plant's state, a measure of the
+    wrong size and starts whose parts disagree on the number of members."""
     mpc, _ = _regulator()
     att = CAT.attitude_model()
-    start = dict(theta=0.6, chi=0.4, theta_dot=0.3, chi_dot=-0.5)  # off the target: the loop works
-    y0, x0 = att.initial_state(**start), CAT.initial_state(**start)
-    np.testing.assert_allclose(np.asarray(_chart_of_attitudes(y0)), np.asarray(x0), atol=1e-14)
+    starts = [dict(theta=0.6, chi=0.4, theta_dot=0.3, chi_dot=-0.5),  # off the target: the loop works
+              dict(theta=1.0, chi=-0.3, theta_dot=-0.2, chi_dot=0.4)]
+    ys0 = [att.initial_state(**st) for st in starts]
+    Y0 = jax.tree_util.tree_map(lambda *a: np.stack(a), *ys0)  # the members on axis 0 of every part
     # a kick of 1 rad/s on the bend rate at t = 0.3 s: an increment of the chart state,
     # a map of the attitude model's state
     kick = [(0.3, np.array([0.0, 0.0, 0.0, 1.0, 0.0]))]
     kick_lie = [(0.3, lambda y: (y[0], y[1], y[2].at[2].add(1.0)))]
-    chart = closed_loop(mpc, CAT, x0, 10, plant_substeps=4, pushes=kick)
-    lie = closed_loop(mpc, att, y0, 10, plant_substeps=4, measure=_chart_of_attitudes, pushes=kick_lie)
-    xs = np.asarray(chart.trajectory.xs)
-    ys = np.asarray(lie.measurements)
-    assert np.ptp(xs[:, 2]) > 0.05  # the cat turns: psi is worth measuring
-    assert np.abs(np.diff(xs[:, 3])).max() > 0.5  # the kick shows in the bend rate
-    shape = [0, 1, 3, 4]  # the same RK4 steps on the same shape equations: equal to round-off
-    np.testing.assert_allclose(ys[:, shape], xs[:-1, shape], rtol=0, atol=1e-12)
-    # psi: RK4 on psi' = -f(theta) chi' against RKMK4 on the attitudes, steps of 0.025 s
-    np.testing.assert_allclose(ys[:, 2], xs[:-1, 2], rtol=0, atol=1e-7)  # (measured: 2.2e-8)
-    # (psi has no weight and does not enter the shape's dynamics: the inputs do not see it)
-    np.testing.assert_allclose(np.asarray(lie.inputs), np.asarray(chart.inputs), rtol=0, atol=1e-10)
-    np.testing.assert_allclose(float(lie.cost), float(chart.cost), rtol=1e-10)
-    final = np.asarray(jax.vmap(_chart_of_attitudes)(jax.tree_util.tree_map(lambda a: a[-1:], lie.trajectory.xs)))
-    np.testing.assert_allclose(final[0], xs[-1], rtol=0, atol=1e-7)
+    lie = closed_loop_batch(mpc, att, Y0, 10, plant_substeps=4, measure=_chart_of_attitudes, pushes=kick_lie,
+                            group=1)
+    assert np.asarray(lie.measurements).shape == (2, 10, 5) and np.asarray(lie.trajectory.xs[0]).shape == (2, 11, 3, 3)
+    for i, (st, y0) in enumerate(zip(starts, ys0)):
+        x0 = CAT.initial_state(**st)
+        np.testing.assert_allclose(np.asarray(_chart_of_attitudes(y0)), np.asarray(x0), atol=1e-14)
+        chart = closed_loop(mpc, CAT, x0, 10, plant_substeps=4, pushes=kick)
+        xs = np.asarray(chart.trajectory.xs)
+        ys = np.asarray(lie.measurements[i])
+        assert np.ptp(xs[:, 2]) > 0.05  # the cat turns: psi is worth measuring
+        assert np.abs(np.diff(xs[:, 3])).max() > 0.5  # the kick shows in the bend rate
+        # the same RK4 steps on the same shape equations; the batch's QPs by the Riccati
+        # recursion, the loop's densely: equal to the QPs' last digits
+        shape = [0, 1, 3, 4]
+        np.testing.assert_allclose(ys[:, shape], xs[:-1, shape], rtol=0, atol=1e-10)
+        # psi: RK4 on psi' = -f(theta) chi' against RKMK4 on the attitudes, steps of 0.025 s
+        np.testing.assert_allclose(ys[:, 2], xs[:-1, 2], rtol=0, atol=1e-7)  # (measured: 2.2e-8)
+        # (psi has no weight and does not enter the shape's dynamics: the inputs do not see it)
+        np.testing.assert_allclose(np.asarray(lie.inputs[i]), np.asarray(chart.inputs), rtol=0, atol=1e-10)
+        np.testing.assert_allclose(float(lie.cost[i]), float(chart.cost), rtol=1e-10)
+        end = jax.tree_util.tree_map(lambda a: a[i, -1], lie.trajectory.xs)
+        np.testing.assert_allclose(np.asarray(_chart_of_attitudes(end)), xs[-1], rtol=0, atol=1e-7)
     for g in np.asarray(lie.trajectory.xs[0]), np.asarray(lie.trajectory.xs[1]):
-        np.testing.assert_allclose(np.einsum("kji,kjl->kil", g, g), np.broadcast_to(np.eye(3), g.shape), atol=1e-12)
+        np.testing.assert_allclose(np.einsum("bkji,bkjl->bkil", g, g), np.broadcast_to(np.eye(3), g.shape),
+                                   atol=1e-12)
+    y0 = ys0[0]
     with pytest.raises(MPCError, match="measure="):
         closed_loop(mpc, att, y0, 3)
+    with pytest.raises(MPCError, match="measure="):
+        closed_loop_batch(mpc, att, Y0, 3)
     with pytest.raises(MPCError, match="function of the plant's state"):
         closed_loop(mpc, att, y0, 3, measure=_chart_of_attitudes, pushes=[(0.3, np.ones(5))])
     with pytest.raises(MPCError, match="structure"):
-        closed_loop(mpc, att, y0, 3, measure=_chart_of_attitudes, pushes=[(0.3, lambda y: y[2])])
+        closed_loop_batch(mpc, att, Y0, 3, measure=_chart_of_attitudes, pushes=[(0.3, lambda y: y[2])])
     with pytest.raises(MPCError, match="5 numbers"):
         closed_loop(mpc, att, y0, 3, measure=lambda y: y[2])
+    with pytest.raises(MPCError, match="axis 0 of every part"):
+        closed_loop_batch(mpc, att, (Y0[0], Y0[1][:1], Y0[2]), 3, measure=_chart_of_attitudes)
+    with pytest.raises(MPCError, match=r"members \[1\]"):
+        closed_loop_batch(mpc, att, (Y0[0], Y0[1], Y0[2] * np.array([[1.0], [np.nan]])), 3,
+                          measure=_chart_of_attitudes)
 
 
 @pytest.mark.slow(reason="compiles the per-period step and plant programs (as test_timed_loop_is_the_scanned_loop); "
-                         "the default-run test_a_plant_on_so3_is_measured_into_the_models_coordinates runs the "
-                         "same measured loop as one scan")
+                         "the default-run test_plants_on_so3_are_measured_into_the_models_coordinates runs the "
+                         "same measured loop (in a batch) as one scan")
 def test_a_measured_plant_steps_the_same_from_python():
     """closed_loop(timing=True) on a plant measured into the model's coordinates (the
     attitude cat of the test above): one compiled call per period gives the scanned
