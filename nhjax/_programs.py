@@ -279,24 +279,27 @@ def _global_names(code: types.CodeType):
 # ("nan": controls' programs, which JAX can then keep on disk) or nothing ("off": a
 # solve's own diffrax checks, batched programs). equinox reads its mode from one module
 # global (EQX_ON_ERROR); nhjax never changes that global. It keeps its own mode instead,
-# per thread, as a JAX configuration state that is part of JAX's trace context: a
-# function traced in one mode (a check, or diffrax's jitted solve around it) is never
-# reused from JAX's in-memory caches in another, and threads that trace at once (the
+# per thread, as a JAX configuration state that is part of JAX's trace context and of
+# its jit dispatch key: a function traced in one mode (a check, or diffrax's jitted solve
+# around it) is never reused from JAX's in-memory caches in another (without the dispatch
+# key, a jitted function compiled in one thread's "nan" mode answered another thread's
+# call in "raise" from its C++ cache), and threads that trace at once (the
 # solvers on a threads-only Dask cluster) each trace in their own mode. equinox's check
 # is routed through ``error_mode`` (``_route_checks``, once at import).
 _MODES = ("default", "raise", "nan", "off", "breakpoint")
 
 
 def _mode_state():
-    """The thread-local mode: a JAX config state in the trace context ("default": as
-    equinox is configured); a plain thread-local stack if this JAX has no such states."""
+    """The thread-local mode: a JAX config state in the trace context and the jit key
+    ("default": as equinox is configured); a plain thread-local stack if this JAX has no
+    such states."""
     try:
         from jax._src import config as jax_config
 
         state = jax_config.config_states.get("nhjax_error_mode")
         if state is None:
             state = jax_config.enum_state(
-                "nhjax_error_mode", list(_MODES), "default", include_in_trace_context=True,
+                "nhjax_error_mode", list(_MODES), "default", include_in_jit_key=True, include_in_trace_context=True,
                 help="equinox's runtime-error mode while nhjax traces (set by nhjax per thread)")
         return state
     except (ImportError, AttributeError, TypeError):  # another JAX: per thread, outside the trace context

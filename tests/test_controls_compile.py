@@ -326,9 +326,11 @@ def test_error_modes_are_per_thread_and_part_of_the_trace():
     """equinox's error mode is nhjax's per thread (``nhjax._programs.errors``, which
     ``nan_errors`` is): two threads whose contexts overlap (as the solvers of a
     threads-only Dask cluster's workers do) call one jitted ``eqx.error_if`` on a bad
-    input while both contexts are open, and each gets its own mode's program: NaN in
-    "nan", the input in "off". Afterwards, and while they ran, the main thread's call
-    raises (neither trace is reused outside its mode), nested contexts come back to the
+    input in turn, while both contexts are open, and each gets its own mode's program:
+    NaN in "nan", the input in "off". The main thread's call after theirs, still while
+    they are open, raises: neither program is reused outside its mode, neither from
+    JAX's trace caches nor from its jit dispatch cache (which answered it with the "nan"
+    program before the mode was part of the jit key). Nested contexts come back to the
     outer one, and equinox's own global setting was never changed."""
     import threading
 
@@ -340,23 +342,30 @@ def test_error_modes_are_per_thread_and_part_of_the_trace():
     before = _errors.EQX_ON_ERROR
     checked = jax.jit(lambda x: eqx.error_if(x, x < 0, "negative input"))
     both_in, done = threading.Barrier(3, timeout=20), threading.Barrier(3, timeout=20)
+    turns = {"nan": threading.Event(), "off": threading.Event(), "main": threading.Event()}
     seen = {}
 
-    def run(mode):
+    def run(mode, after):
         with nan_errors(mode):
             both_in.wait()  # the other thread's context is open too
+            turns[mode].wait(20)
             seen[mode] = (_programs.error_mode(), float(checked(jnp.asarray(-1.0))))
+            turns[after].set()
             done.wait()
 
-    threads = [threading.Thread(target=run, args=(m,)) for m in ("nan", "off")]
+    threads = [threading.Thread(target=run, args=("nan", "off")), threading.Thread(target=run, args=("off", "main"))]
     for t in threads:
         t.start()
-    both_in.wait()
-    with pytest.raises(Exception, match="negative input"):  # the main thread meanwhile: as configured
-        checked(jnp.asarray(-1.0)).block_until_ready()
-    done.wait()
-    for t in threads:
-        t.join(20)
+    try:
+        both_in.wait()
+        turns["nan"].set()  # "nan" calls first, then "off", then this thread
+        assert turns["main"].wait(20)
+        with pytest.raises(Exception, match="negative input"):  # as configured, the others' programs cached
+            checked(jnp.asarray(-1.0)).block_until_ready()
+    finally:
+        done.wait()
+        for t in threads:
+            t.join(20)
     assert seen["off"] == ("off", -1.0)
     assert seen["nan"][0] == "nan" and np.isnan(seen["nan"][1])
     with pytest.raises(Exception, match="negative input"):
