@@ -1211,28 +1211,25 @@ def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measur
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
     if measure is not None:
         X, B, push_t, push_fns = _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner)
-        fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n,
-                                                                         owner)
-        if keys is not None and jnp.shape(keys)[:1] != (B,):
-            raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
-        key_data = _key_data(keys, fsd, msd, owner, members=B)
-        push_dx = np.zeros(push_t.shape + (n,))
-        return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, push_fns
-    X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
-    if X.ndim != 2 or X.shape[1] != n:
-        raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
-    if not np.all(np.isfinite(X)):
-        rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
-        raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
-    B = X.shape[0]
+    else:
+        X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
+        if X.ndim != 2 or X.shape[1] != n:
+            raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
+        if not np.all(np.isfinite(X)):
+            rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
+            raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
+        B, push_fns = X.shape[0], ()
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
     if keys is not None and jnp.shape(keys)[:1] != (B,):
         raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
     key_data = _key_data(keys, fsd, msd, owner, members=B)
-    push_t, push_dx = _pushes(pushes, n, (B,), owner)
-    if push_t.shape[0] != B:
-        raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
-    return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, ()
+    if measure is not None:  # (the pushes are the functions; no increments)
+        push_dx = np.zeros(push_t.shape + (n,))
+    else:
+        push_t, push_dx = _pushes(pushes, n, (B,), owner)
+        if push_t.shape[0] != B:
+            raise MPCError(f"{owner}: per-member pushes must have a leading axis of {B} members")
+    return plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, push_fns
 
 
 def _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner):

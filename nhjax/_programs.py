@@ -384,12 +384,13 @@ def branched_error_if(x, pred, index, msgs, on_error: str = "default"):
                 return eqx.combine(dynamic, static)
         except (ImportError, AttributeError, TypeError):  # another equinox: its own way
             pass
-    if _EQX_CHECK["jit"] is not None and any(eqx.is_array(leaf) for leaf in jtu.tree_leaves((x, pred, index))):
-        return _EQX_CHECK["jit"](x, pred, index, msgs, on_error=on_error)  # equinox's own (not routed again)
+    if _EQX_JIT_CHECK is not None and any(eqx.is_array(leaf) for leaf in jtu.tree_leaves((x, pred, index))):
+        return _EQX_JIT_CHECK(x, pred, index, msgs, on_error=on_error)  # equinox's own (not routed again)
     return eqx.branched_error_if(x, pred, index, msgs, on_error=on_error)
 
 
-_EQX_CHECK = {"jit": None, "plain": None}
+#: equinox's own traced check, before ``_route_checks`` put ``branched_error_if`` in its place.
+_EQX_JIT_CHECK = None
 
 
 def _route_checks():
@@ -399,13 +400,14 @@ def _route_checks():
     untraced ones (``branched_error_if_impl``, for Python booleans) likewise. Nothing is
     done if equinox has no such functions (another version: its checks then follow
     EQX_ON_ERROR only)."""
+    global _EQX_JIT_CHECK
     from equinox import _errors
 
     jit_impl = getattr(_errors, "branched_error_if_impl_jit", None)
     plain_impl = getattr(_errors, "branched_error_if_impl", None)
     if jit_impl is None or plain_impl is None or getattr(jit_impl, "_nhjax", False):
         return
-    _EQX_CHECK.update(jit=jit_impl, plain=plain_impl)
+    _EQX_JIT_CHECK = jit_impl
 
     def routed(x, pred, index, msgs, *, on_error="default"):
         return branched_error_if(x, pred, index, msgs, on_error)

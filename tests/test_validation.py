@@ -321,7 +321,7 @@ def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):
     from nhjax import _programs
 
     def _clear_error_traces():  # (equinox caches its traced checks; a cached one reads no stack either)
-        _programs._EQX_CHECK["jit"]._cached.clear_cache()
+        _programs._EQX_JIT_CHECK._cached.clear_cache()
 
     _clear_error_traces()
     walks = []
