@@ -185,12 +185,18 @@ class _SineFeedback(eqx.Module):
         return -self.k * _sine(x[:1])
 
 
-def test_auto_takes_the_vjps_where_a_step_has_no_forward_mode_rule(monkeypatch):
+def test_auto_takes_the_vjps_where_a_step_has_no_forward_mode_rule(monkeypatch, tmp_path):
     """A control built on a custom_vjp function (no forward-mode rule): "auto" with
     D = 1 <= max_tangents tries the tangents, meets JAX's refusal while tracing them
     and forms the backward pass by VJPs instead, with the differentiated loop's
-    derivative; "tangents" asked for by name passes the refusal on."""
+    derivative; "tangents" asked for by name passes the refusal on. (An empty program
+    cache: a backward pass stored by an earlier run would be loaded, not traced.)"""
+    from nhjax import _primitive, _programs
     from nhjax.integrate import adjoint as A
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    monkeypatch.setattr(_primitive, "_SPECS", {})
 
     used = []
     monkeypatch.setattr(A, "_sequential_vjps", lambda *a, f=A._sequential_vjps: used.append("vjp") or f(*a))

@@ -605,52 +605,225 @@ def _save_times(saveat, t0, t1, runtime_errors=False):
 _member_report = eqx.filter_jit(member_report)
 
 
-def _check_inputs(system, control, x0, t0, constraint_tol, project):
-    """Validate structure, shapes, finiteness, group membership and constraints of x0
-    (``nhjax._validate``); returns (x0 (maybe projected), guard names, whether the
-    system has constraints to project onto after each step). Concrete values raise the
-    named errors of ``nhjax.errors``; traced ones get the same words as runtime errors."""
-    args = _report_args(system, control, x0, t0, project)
-    if _is_traced(args):
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Call:
+    """One ``simulate()`` call after the checks of its arguments (``_checked``).
+
+    ``traced``: values unknown (under the user's ``jax.jit`` or ``jax.vmap``): the
+    checks of x0's values become runtime errors and the solve is part of the caller's
+    program. Otherwise every value is known (concrete, or under ``jax.grad`` /
+    ``jax.jvp`` of concrete values: ``differentiated``), the named errors are raised
+    before the solve runs, and the programs come from the program cache when
+    ``stored`` (``NHJAX_CACHE_DIR`` on)."""
+
+    system: Any
+    control: Any
+    x0: Any
+    t0: Any  # as given (messages, the traced time span's check)
+    t1: Any
+    t0a: Any  # on the device
+    t1a: Any
+    differentiated: bool
+    traced: bool
+    stored: bool
+    project: bool
+    constraint_tol: Any
+    on_guard: str
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Plan:
+    """The static configuration of one solve (``_planned``): what its program is
+    traced for. ``inline``: traced into the caller's program as it stands (no stored
+    program: the cache off, a progress bar's host callback, or inside a stored
+    program's own trace)."""
+
+    ts: Any
+    solver: Any
+    controller: Any
+    adjoint: Any
+    dt0: Any
+    static: _Static
+    show: Any
+    adjoint_given: bool
+    inline: bool
+
+
+def _checked(system, x0, t1, *, t0, control, saveat, rtol, atol, dt0, max_steps, adjoint, project,
+             constraint_tol, on_guard) -> _Call:
+    """Stage 1 of ``simulate``: every check that the arguments' types, shapes and known
+    values answer on the host (``nhjax._validate``'s named errors), once, before any
+    program is traced; and whether the values are known."""
+    choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
+    if not isinstance(system, AbstractSystem):
+        raise ParameterError(
+            f"simulate: system must be an nhjax system (nhjax.mechanics.AbstractSystem, e.g. a scene or a "
+            f"Lagrangian), got {type(system).__name__}", "system", system)
+    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol)
+    # a traced time span is checked with the solve's result (one runtime check: see
+    # _runtime_checks)
+    t0, t1 = time_span(t0, t1, owner="simulate", runtime=False)
+    check_saveat(saveat, t0, t1, owner="simulate")
+    # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
+    numbers = (x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
+    differentiated = _is_traced(numbers)
+    # under jax.grad / jax.jvp of concrete values the values are known: checked as in an
+    # eager call, and the solve and its derivatives are stored programs (nhjax._primitive);
+    # only under jit or vmap is the call traced
+    traced = differentiated and not _primitive.has_values(numbers)
+    x0 = as_state(system, x0, owner="simulate")
+    simulate_memory(system, x0, saveat, stores_steps=differentiated and isinstance(adjoint, DiscreteAdjoint),
+                    max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    return _Call(system, control, x0, t0, t1, to_device(t0), to_device(t1), differentiated, traced,
+                 _programs.directory() is not None, bool(project), constraint_tol, on_guard)
+
+
+def _structure(call: _Call):
+    """(guard names, whether to project after each step): what the solve's program needs
+    to know of the system before x0's values are checked. Known values with the program
+    cache on: from the output structure of the checks' program (``member_report``), which
+    is traced here (a control's shape errors raise here) and compiled in the background,
+    or loaded from disk without a trace; otherwise from shapes (``_check_structure``)."""
+    if call.stored and not call.traced:
+        args = _primitive.concrete((call.system, call.control, call.x0, call.t0a, call.project))
+        _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
+        out_def = _programs.output_structure("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
+        if out_def is not None:
+            _, report = jtu.tree_unflatten(out_def, [None] * out_def.num_leaves)  # the report's names
+            return tuple(report["guards"]), _drifting_constraints(report["constraints"])
+    return _check_structure(call.system, call.x0, call.t0a)
+
+
+def _checked_values(system, control, x0, t0, constraint_tol, project, t0_given=None):
+    """Stage 3's first program: the checks of x0's values (finite, on its group and
+    constraints, inside its chart: ``member_report``). Returns (x0, projected if
+    ``project``; the report).
+
+    Known values: the report's program runs (from the program cache) and the named
+    errors of ``nhjax.errors`` are raised for what it found, before the solve runs; a
+    differentiated x0 keeps its derivative (with ``project``, the projection is
+    differentiated). Unknown values (under jit or vmap): the same words as runtime
+    errors. ``t0`` on the device; ``t0_given`` as the user gave it (messages)."""
+    args = (system, control, x0, t0, project)
+    t0_given = t0 if t0_given is None else t0_given
+    if not _primitive.has_values(args):
         x0p, report = _member_report(*args)
-        if _is_traced(x0, system, control, report["finite"]):  # under an outer jit everything is traced
-            x0p = runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project)
-            return x0p, tuple(report["guards"]), _drifting_constraints(report["constraints"])
-        raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
-    else:
-        x0p, report = _finish_checks(args, system, x0, t0, constraint_tol, project)
+        return runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project), report
+    known = _primitive.concrete(args)
+    x0p, report = _programs.call("report", member_report, known, fallback=_member_report,
+                                 compiler_options=_programs.QUICK_OPTIONS)
+    raise_for_report(report, known[0], x0=known[2], constraint_tol=constraint_tol, project=project,
+                     t0=_primitive.concrete(t0_given))
+    if _is_traced(args):  # under jax.grad / jax.jvp: the derivative flows through x0
+        x0p = _primitive.call("report", member_report, args, options=_programs.QUICK_OPTIONS,
+                              fallback=_member_report)[0] if project else x0
+    return x0p, report
+
+
+def _check_inputs(system, control, x0, t0, constraint_tol, project):
+    """The checks of x0 and the control that ``simulate`` makes, host-side and of values,
+    on their own: returns (x0, maybe projected; guard names; whether the system has
+    constraints to project onto after each step)."""
+    check_state(system, x0, owner="simulate")
+    check_control(system, control, owner="simulate")
+    x0p, report = _checked_values(system, control, x0, to_device(t0), constraint_tol, project, t0)
     return x0p, tuple(report["guards"]), _drifting_constraints(report["constraints"])
 
 
-def _report_args(system, control, x0, t0, project):
-    """The host-side checks of x0 and the control; ``member_report``'s arguments."""
-    check_state(system, x0, owner="simulate")
-    check_control(system, control, owner="simulate")
-    return system, control, x0, to_device(t0), project
+def _planned(call: _Call, *, saveat, solver, rtol, atol, dt0, max_steps, stepsize_controller, jump_ts,
+             adjoint, project_steps, track_work, progress, diagnostics) -> _Plan:
+    """Stage 2 of ``simulate``: the static configuration of the solve (``_configure``,
+    shared with ``simulate_batch``) and how its program runs."""
+    guard_names, constrained = _structure(call)
+    if project_steps is None:
+        project_steps = constrained
+    adjoint_given = adjoint is not None
+    solver, controller, adjoint, dt0, static, ts = _configure(
+        call.system, call.control, call.x0, call.t0, call.t1, guard_names, saveat=saveat, solver=solver,
+        rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
+        jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
+        progress=bool(progress), diagnostics=diagnostics, runtime_errors=True, single=True,
+    )
+    # diffrax's own runtime checks (save times, dt0) stay out of the solve's program:
+    # _configure made them (eager: raised; traced: runtime errors outside the solve), so
+    # the solve has no host callback and compiles into one function (see one_function)
+    static = dataclasses.replace(static, runtime_checks=False)
+    # The progress bar is a host callback in the loop: a program with it is never kept in
+    # JAX's persistent cache and XLA does not compile its small loops as one function,
+    # so it is compiled in only when asked for (once per structure and process).
+    inline = call.traced and (static.progress or not call.stored or _programs.tracing_stored())
+    if inline:
+        static = dataclasses.replace(static, error_mode=_programs.error_mode())
+    return _Plan(ts, solver, controller, adjoint, dt0, static, np.asarray(bool(progress)), adjoint_given, inline)
 
 
-def _start_checks(system, control, x0, t0, project):
-    """The first half of ``_check_inputs`` for an eager call: the host-side checks, and
-    ``member_report``'s program traced (its shape errors raise here) and compiled in the
-    background. Returns (the report's arguments, guard names, whether to project after
-    each step)."""
-    args = _report_args(system, control, x0, t0, project)
-    _programs.prepare("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    out_def = _programs.output_structure("report", member_report, args, compiler_options=_programs.QUICK_OPTIONS)
-    if out_def is None:
-        return args, *_check_structure(system, x0, args[3])
-    _, report = jtu.tree_unflatten(out_def, [None] * out_def.num_leaves)  # the report's names
-    return args, tuple(report["guards"]), _drifting_constraints(report["constraints"])
+def _run(call: _Call, plan: _Plan) -> Trajectory:
+    """Stage 3 of ``simulate``: its programs, in order: the checks of x0's values
+    (``_checked_values``), the solve, and the diagnostics with a projected solve's
+    projection of its saved states (``_saved_eager``, a second program run on the
+    solution). Known values with the program cache on: every program is traced (or
+    loaded) first, one after the other (tracing holds the GIL), and compiled in the
+    background as soon as it is traced (XLA releases it); then the checks run, and
+    raise, before the solve runs. With the cache off the diagnostics compile in a
+    thread while the solve compiles."""
+    static = plan.static
+    core = dataclasses.replace(static, diagnostics=False, project_saved=False)
+    second = static.project_steps or static.diagnostics
+
+    def solve_args(x0):
+        return (call.system, call.control, x0, call.t0a, call.t1a, plan.ts, plan.solver, plan.controller,
+                plan.adjoint, plan.dt0)
+
+    def diagnosed(traj, x0):
+        return _with_diagnostics(traj, call.system, call.control, x0, call.t0a, static)
+
+    def cached(x0):
+        return _solve_cached(*solve_args(x0), core, plan.show, adjoint_given=plan.adjoint_given,
+                             on_guard=call.on_guard)
+
+    def checked():
+        return _checked_values(call.system, call.control, call.x0, call.t0a, call.constraint_tol, call.project,
+                               call.t0)[0]
+
+    if call.traced:
+        x0 = checked()
+        if plan.inline:
+            return _solve(*solve_args(x0), static, plan.show)
+        # the stored programs, inlined by XLA (nothing of the solve is traced)
+        return diagnosed(cached(x0), x0)
+    if call.stored:
+        if not static.progress:
+            _programs.prepare("simulate", _solve_plain, (*solve_args(call.x0), core, plan.show),
+                              error_mode="off", compiler_options=_programs.SOLVE_OPTIONS)
+        if second:
+            _programs.prepare("diagnose", _saved_eager,
+                              _diagnose_placeholders(call.system, call.control, call.x0, call.t0a, plan.ts,
+                                                     static.track_work, static.project_steps, static.diagnostics),
+                              error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
+    x0 = checked()
+    warm = None
+    if second and not (call.stored or call.differentiated):  # compiled in a thread while the solve compiles
+        # (not under jax.grad / jax.jvp: their tracers cannot enter another thread, and the
+        # diagnostics are then differentiated as part of the caller's trace, not this program)
+        warm = _warm_pool().submit(_warm_diagnostics, call.system, call.control, x0, call.t0a, plan.ts,
+                                   static.track_work, static.project_steps, static.diagnostics)
+    traj = cached(x0)
+    if warm is not None:
+        warm.result()
+    return diagnosed(traj, x0)
 
 
-def _finish_checks(report_args, system, x0, t0, constraint_tol, project):
-    """The second half (eager): run the report through the program cache (a new process
-    does not trace it again) and raise for what it found; returns (x0, projected if
-    ``project``, and the report)."""
-    x0p, report = _programs.call("report", member_report, report_args,
-                                 compiler_options=_programs.QUICK_OPTIONS)
-    raise_for_report(report, system, x0=x0, constraint_tol=constraint_tol, project=project, t0=t0)
-    return x0p, report
+def _wrapped(call: _Call, plan: _Plan, traj: Trajectory) -> Trajectory:
+    """Stage 4 of ``simulate``: the solve's outcome read. Known values: a chart guard's
+    stop or a failed solve raises (``ChartSingularityError``, ``IntegrationError``, with
+    the trajectory up to there) or truncates (``on_guard="stop"``); traced: the same
+    as one runtime check on the outputs users read."""
+    if call.traced:
+        span = time_span_check(call.t0, call.t1, owner="simulate") if _is_traced(call.t0, call.t1) else None
+        return _runtime_checks(traj, plan.static, call.on_guard, span)
+    return _eager_checks(traj, call.system, call.control, plan.static, call.on_guard)
 
 
 def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol, atol, dt0,
@@ -859,107 +1032,13 @@ def simulate(
     process. With ``progress=True`` the loop holds a host callback too and is traced
     as usual.
     """
-    choice("on_guard", on_guard, ("raise", "stop"), owner="simulate")
-    if not isinstance(system, AbstractSystem):
-        raise ParameterError(
-            f"simulate: system must be an nhjax system (nhjax.mechanics.AbstractSystem, e.g. a scene or a "
-            f"Lagrangian), got {type(system).__name__}", "system", system)
-    solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol)
-    # a traced time span is checked with the solve's result (one runtime check: see
-    # _runtime_checks)
-    t0, t1 = time_span(t0, t1, owner="simulate", runtime=False)
-    check_saveat(saveat, t0, t1, owner="simulate")
-    # traced tolerances or saved times (e.g. jax.jit over rtol) also make the whole call traced
-    numbers = (x0, t0, t1, system, control, rtol, atol, dt0, None if isinstance(saveat, int) else saveat)
-    differentiated = _is_traced(numbers)
-    # under jax.grad / jax.jvp of concrete values the values are known: checked as in an
-    # eager call, and the solve and its derivatives are stored programs (nhjax._primitive);
-    # only under jit or vmap is the call traced
-    traced = differentiated and not _primitive.has_values(numbers)
-    x0 = as_state(system, x0, owner="simulate")
-    simulate_memory(system, x0, saveat, stores_steps=differentiated and isinstance(adjoint, DiscreteAdjoint),
-                    max_steps=max_steps if max_steps is not None else getattr(adjoint, "max_steps", None))
-    # An eager call with the program cache on starts every program it needs before it
-    # runs any (see _start_checks); otherwise the checks run first, as a program of their own.
-    early = not traced and _programs.directory() is not None
-    if early:
-        report_args, guard_names, constrained = _start_checks(
-            *_primitive.concrete((system, control, x0, t0)), project)
-    else:
-        x0, guard_names, constrained = _check_inputs(system, control, x0, t0, constraint_tol, project)
-    if project_steps is None:
-        project_steps = constrained
-
-    # The progress bar is a host callback in the loop: a program with it is never kept in
-    # JAX's persistent cache and XLA does not compile its small loops as one function,
-    # so it is compiled in only when asked for (once per structure and process).
-    adjoint_given = adjoint is not None
-    solver, stepsize_controller, adjoint, dt0, static, ts = _configure(
-        system, control, x0, t0, t1, guard_names, saveat=saveat, solver=solver, rtol=rtol,
-        atol=atol, dt0=dt0, max_steps=max_steps, stepsize_controller=stepsize_controller,
-        jump_ts=jump_ts, adjoint=adjoint, project_steps=project_steps, track_work=track_work,
-        progress=bool(progress), diagnostics=diagnostics, runtime_errors=True, single=True,
-    )
-    t0a, t1a = to_device(t0), to_device(t1)
-    show = np.asarray(bool(progress))
-    # diffrax's own runtime checks (save times, dt0) stay out of the solve's program:
-    # _configure made them (eager: raised; traced: runtime errors outside the solve), so
-    # the solve has no host callback and compiles into one function (see one_function)
-    static = dataclasses.replace(static, runtime_checks=False)
-    if traced and (static.progress or _programs.directory() is None or _programs.tracing_stored()):
-        # traced into the caller's program (inside a stored program's own trace, e.g. an
-        # optimal-control solver's; with the cache off; with a progress bar's callback)
-        static = dataclasses.replace(static, error_mode=_programs.error_mode())
-        traj = _solve(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, static,
-                      show)
-    elif traced:
-        # under the user's jit or vmap: the stored programs, inlined by XLA (nothing of the
-        # solve is traced); the checks are runtime errors (_runtime_checks)
-        core = dataclasses.replace(static, diagnostics=False, project_saved=False)
-        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
-                             show, adjoint_given=adjoint_given, on_guard=on_guard)
-        traj = _with_diagnostics(traj, system, control, x0, t0a, static)
-    else:
-        # Eager call: the diagnostics, and a projected solve's projection of its saved
-        # states, are a second program, run on the solution (_saved_eager).
-        track = static.track_work
-        project_saved = static.project_steps
-        second = project_saved or static.diagnostics
-        core = dataclasses.replace(static, diagnostics=False, project_saved=False)
-        warm = None
-        if early:
-            # traced one after the other here (tracing holds the GIL), each compiled in
-            # the background as soon as it is traced (XLA releases it): the checks, the
-            # solve, the diagnostics; then the checks run, and raise before the solve runs
-            if not static.progress:
-                _programs.prepare("simulate", _solve_plain,
-                                  (system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0,
-                                   core, show), error_mode="off",
-                                  compiler_options=_programs.SOLVE_OPTIONS)
-            if second:
-                _programs.prepare("diagnose", _saved_eager,
-                                  _diagnose_placeholders(system, control, x0, t0a, ts, track, project_saved,
-                                                         static.diagnostics),
-                                  error_mode="off", compiler_options=_programs.QUICK_OPTIONS)
-            x0_checked, _ = _finish_checks(report_args, report_args[0], report_args[2], report_args[3],
-                                           constraint_tol, project)
-            if not differentiated:
-                x0 = x0_checked
-            elif project:  # the projection of a differentiated x0, differentiated
-                x0 = _primitive.call("report", member_report, (system, control, x0, t0a, project),
-                                     options=_programs.QUICK_OPTIONS)[0]
-        elif second:  # compiled in a thread while the solve compiles
-            warm = _warm_pool().submit(_warm_diagnostics, system, control, x0, t0a, ts, track, project_saved,
-                                       static.diagnostics)
-        traj = _solve_cached(system, control, x0, t0a, t1a, ts, solver, stepsize_controller, adjoint, dt0, core,
-                             show, adjoint_given=adjoint_given, on_guard=on_guard)
-        if warm is not None:
-            warm.result()
-        traj = _with_diagnostics(traj, system, control, x0, t0a, static)
-    if traced:
-        span = time_span_check(t0, t1, owner="simulate") if _is_traced(t0, t1) else None
-        return _runtime_checks(traj, static, on_guard, span)
-    return _eager_checks(traj, system, control, static, on_guard)
+    call = _checked(system, x0, t1, t0=t0, control=control, saveat=saveat, rtol=rtol, atol=atol, dt0=dt0,
+                    max_steps=max_steps, adjoint=adjoint, project=project, constraint_tol=constraint_tol,
+                    on_guard=on_guard)
+    plan = _planned(call, saveat=saveat, solver=solver, rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps,
+                    stepsize_controller=stepsize_controller, jump_ts=jump_ts, adjoint=adjoint,
+                    project_steps=project_steps, track_work=track_work, progress=progress, diagnostics=diagnostics)
+    return _wrapped(call, plan, _run(call, plan))
 
 
 def _state_norm(y):
