@@ -42,28 +42,3 @@ def pytest_collect_file(file_path, parent):
         collectors = [c for c in collectors if type(c).__name__ != "MarkdownDocstringCodeModule"]
     return collectors
 
-
-# The two pytest-xdist workers take whole files (--dist loadfile) in collection order
-# (--no-loadscope-reorder: xdist's own order, by number of tests, sends the files of a
-# few long tests last), so a long file that comes last runs alone while the other worker
-# idles. These files, the longest of a cold run (`pytest --durations=0`), go first; the
-# many short files then even out the end. Only the order changes: a file missing from the
-# list (or a stale list) runs all the same, in its place.
-_LONGEST_FIRST = (
-    "tests/test_mpc.py", "tests/test_batch.py", "tests/test_first_answers.py", "tests/test_controls.py",
-    "tests/test_rkmk.py", "tests/test_steering.py", "tests/test_ocp_batch.py", "tests/test_validation.py",
-    "docs/guides/optimal-control.md", "tests/test_impacts_batch.py", "tests/test_somersault_ocp.py",
-    "tests/test_falling_cat.py", "tests/test_install.py", "tests/test_impacts_grad.py",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    rank = {path: i for i, path in enumerate(_LONGEST_FIRST)}
-    root = config.rootpath
-    order = {}
-    for item in items:
-        try:
-            order.setdefault(item.path, rank.get(item.path.relative_to(root).as_posix(), len(rank)))
-        except ValueError:  # outside the repository
-            order.setdefault(item.path, len(rank))
-    items.sort(key=lambda item: order[item.path])  # stable: within a file, and among the rest, as collected

@@ -297,6 +297,7 @@ def _chart_of_attitudes(y):
     return jnp.stack([s[0], s[1], jnp.arctan2(R[0, 2], R[0, 0]), s[2], s[3]])
 
 
+@pytest.mark.slow(reason="compiles the measured loop and its batch; the default run runs a measured plant in docs/guides/optimal-control.md; make test-all")
 def test_plants_on_so3_are_measured_into_the_models_coordinates():
     """The regulator against the cat integrated on SO(3) x SO(3) (FallingCatAttitudes:
     psi is no coordinate there; the turn is carried by the attitudes, stepped by RKMK4)
@@ -362,8 +363,8 @@ def test_plants_on_so3_are_measured_into_the_models_coordinates():
 
 
 @pytest.mark.slow(reason="compiles the per-period step and plant programs (as test_timed_loop_is_the_scanned_loop); "
-                         "the default-run test_plants_on_so3_are_measured_into_the_models_coordinates runs the "
-                         "same measured loop (in a batch) as one scan")
+                         "test_plants_on_so3_are_measured_into_the_models_coordinates runs the same measured "
+                         "loop (in a batch) as one scan")
 def test_a_measured_plant_steps_the_same_from_python():
     """closed_loop(timing=True) on a plant measured into the model's coordinates (the
     attitude cat of the test above): one compiled call per period gives the scanned

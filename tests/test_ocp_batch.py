@@ -160,6 +160,7 @@ def _loop_controls(param):
     return np.asarray(param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])))
 
 
+@pytest.mark.slow(reason="compiles the batched SQP; the default run solves a direct batch in docs/guides/optimal-control.md and checks Pontryagin batches member by member here; make test-all")
 def test_direct_batch_members_are_their_own_sqp_solves_and_failures_stay_apart():
     """solve_direct_batch on the chart somersault, one call: members on their loop's
     holonomy, off it, on a cat of other inertia, with control bounds that the turn
