@@ -2,6 +2,7 @@
 works correctly), in the words the issue asked for. Property-based tests and the
 coverage of every public entry point are in test_validation_properties.py."""
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -314,7 +315,8 @@ def test_with_the_program_cache_off_gradients_and_checks_take_the_same_route(mon
     A NaN start raises the named error before any solve; ``jax.grad`` of a final
     position (whose diagnostics program is not compiled in a thread: the tracers of the
     gradient cannot cross into one) is the exact one of the harmonic oscillator,
-    q(T) = q0 cos(2T) (T = q'^2/2, V = 2q^2: omega = 2), to the solve's tolerance."""
+    q(T) = q0 cos(2T) (T = q'^2/2, V = 2q^2: omega = 2), to the solve's tolerance, and
+    so is ``jax.jacfwd`` with ``adjoint=diffrax.ForwardMode()`` (docs/guides/cache.md)."""
     from nhjax import _programs
 
     monkeypatch.setenv("NHJAX_PROGRAM_CACHE", "0")
@@ -323,12 +325,14 @@ def test_with_the_program_cache_off_gradients_and_checks_take_the_same_route(mon
     with pytest.raises(E.StateError, match="NaN or inf"):
         nhjax.simulate(osc, jnp.array([jnp.nan, 0.0]), 1.0)
 
-    def q_end(q0):
-        tr = nhjax.simulate(osc, jnp.stack([q0, 0.0]), 1.0, saveat=3, rtol=1e-10, atol=1e-10)
+    def q_end(q0, adjoint=None):
+        tr = nhjax.simulate(osc, jnp.stack([q0, 0.0]), 1.0, saveat=3, rtol=1e-10, atol=1e-10, adjoint=adjoint)
         assert "energy" in tr.invariant_drift  # the diagnostics program ran
         return tr.x_end[0]
 
     assert abs(float(jax.grad(q_end)(0.3)) - np.cos(2.0)) < 1e-8
+    # forward mode, as the cache guide says: with diffrax's ForwardMode
+    assert abs(float(jax.jacfwd(lambda q: q_end(q, diffrax.ForwardMode()))(0.3)) - np.cos(2.0)) < 1e-8
 
 
 def test_checks_that_show_no_message_do_not_format_the_stack(monkeypatch):

@@ -966,7 +966,8 @@ def simulate(
         known values, eager or under ``jax.grad`` and the like (see below); under
         ``jax.jit`` or ``jax.vmap`` the solve is traced with the adjoint as given
         (default ``RecursiveCheckpointAdjoint``; pass ``diffrax.ForwardMode()`` for
-        forward mode there).
+        forward mode there), and so it is with nhjax's program cache off
+        (``NHJAX_PROGRAM_CACHE=0``), where every call is traced as usual.
     project : project x0 onto the constraint manifold instead of rejecting it.
     project_steps : project the state onto the constraint manifold after every
         step (``ProjectedSolver``), and the saved and final states too; removes the
