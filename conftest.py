@@ -41,4 +41,3 @@ def pytest_collect_file(file_path, parent):
     if file_path.suffix == ".py":
         collectors = [c for c in collectors if type(c).__name__ != "MarkdownDocstringCodeModule"]
     return collectors
-

@@ -696,7 +696,7 @@ def _structure(call: _Call):
     return _check_structure(call.system, call.x0, call.t0a)
 
 
-def _checked_values(system, control, x0, t0, constraint_tol, project, t0_given=None):
+def _checked_values(system, control, x0, t0, constraint_tol, project, t0_given):
     """Stage 3's first program: the checks of x0's values (finite, on its group and
     constraints, inside its chart: ``member_report``). Returns (x0, projected if
     ``project``; the report).
@@ -707,7 +707,6 @@ def _checked_values(system, control, x0, t0, constraint_tol, project, t0_given=N
     differentiated). Unknown values (under jit or vmap): the same words as runtime
     errors. ``t0`` on the device; ``t0_given`` as the user gave it (messages)."""
     args = (system, control, x0, t0, project)
-    t0_given = t0 if t0_given is None else t0_given
     if not _primitive.has_values(args):
         x0p, report = _member_report(*args)
         return runtime_checks(x0p, report, constraint_tol=constraint_tol, project=project), report
