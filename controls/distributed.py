@@ -222,13 +222,10 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
     on_chunk : optional callable ``on_chunk(index)`` run on the worker at the start of
         every attempt of chunk ``index``.
 
-    Threads: a worker with several threads runs several chunks in one process at once,
-    and two ``closed_loop_batch`` calls at once in one process can hang (jaxlib 0.10.2,
-    two cores; seen with ``hessian="exact"``, the ``mpc_cat`` controller): the Hessian
-    floor of the horizon QPs is a batched symmetric eigendecomposition, whose LAPACK
-    kernel splits the batch over XLA's CPU thread pool and waits for it from a thread of
-    that pool, and two such waits can hold every thread of the pool. Where that matters,
-    give each worker one thread (``threads_per_worker=1``) or use worker processes.
+    Threads: a worker with several threads runs several chunks in one process at once.
+    The controller keeps batched LAPACK calls out of its programs for that reason (the
+    Hessian floor's eigendecompositions run one matrix at a time: see
+    ``controls.mpc._hessian_floor``); tests/test_mpc.py runs two batches at once.
     """
     import jax
     import jax.tree_util as jtu

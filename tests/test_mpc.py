@@ -14,6 +14,9 @@ a plant with a constant torque bias.
 """
 
 import functools
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import equinox as eqx
@@ -424,6 +427,52 @@ def test_batch_on_a_dask_client_is_the_local_batch_member_by_member(tmp_path):
         for a, b in zip(jax.tree_util.tree_leaves(far), jax.tree_util.tree_leaves(local)):
             np.testing.assert_allclose(np.asarray(a)[i], np.asarray(b)[r], rtol=0, atol=1e-12)
     assert not np.allclose(np.asarray(far.inputs[1]), np.asarray(far.inputs[0]))  # the members differ
+
+
+_CONCURRENT_CHILD = """
+import sys, threading
+sys.path.insert(0, {root!r})
+import numpy as np
+import nhjax
+from controls import closed_loop_batch
+from experiments import mpc_cat
+
+cat, ocp, mpc = mpc_cat.setup(1.0, "rti", 0.0)
+x0s = np.tile(np.asarray(ocp.x0), (8, 1))
+x0s[:, 0] += np.linspace(-0.05, 0.05, 8)
+alone = np.asarray(closed_loop_batch(mpc, cat, x0s, 3, group=4).trajectory.xs)
+out = {{}}
+
+
+def run(i):
+    out[i] = np.asarray(closed_loop_batch(mpc, cat, x0s, 3, group=4).trajectory.xs)
+
+
+for _ in range(3):
+    threads = [threading.Thread(target=run, args=(i,), daemon=True) for i in range(2)]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    assert all(np.array_equal(out[i], alone) for i in range(2)), "a concurrent run differs from the run alone"
+print("done")
+"""
+
+
+@pytest.mark.slow(reason="compiles the cat's exact-Hessian batch program in a child process (~20 s); make test-all")
+def test_two_batches_at_once_in_one_process_finish(tmp_path):
+    """Two threads of one process run the falling cat's exact-Hessian MPC batch at once
+    (8 members in groups of 4: 160 Hessian floors of 7x7 per period), three times: both
+    finish, each equal to the batch run alone. With the floors as one batched LAPACK
+    eigh, jaxlib 0.10's kernel split the batch over XLA's CPU thread pool and waited from
+    a thread of that pool, and the two programs hung on the first try (seen on 2 cores).
+    The child is killed after 300 s, so a hang fails the test instead of stalling it."""
+    root = str(Path(__file__).resolve().parents[1])
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    try:
+        r = subprocess.run([sys.executable, "-c", _CONCURRENT_CHILD.format(root=root)], capture_output=True,
+                           text=True, env=env, timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.fail("two closed_loop_batch calls at once did not finish in 300 s (hung)")
+    assert r.returncode == 0 and r.stdout.strip().endswith("done"), r.stderr[-3000:]
 
 
 def test_box_qp_meets_its_optimality_conditions():
