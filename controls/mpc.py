@@ -97,8 +97,10 @@ members (starts, disturbances, plant parameters), the groups one after the other
 
 from __future__ import annotations
 
+import concurrent.futures
 import copy
 import dataclasses
+import os
 import time
 from typing import Any
 
@@ -116,7 +118,7 @@ from nhjax.mechanics import AbstractSystem
 from nhjax.errors import NhjaxError
 
 from ._qp import box_qp, stage_qp
-from .problem import OCP, ProblemError, compiled, host_array
+from .problem import OCP, ProblemError, _in_dask_worker, compiled, host_array
 
 __all__ = [
     "MPC",
@@ -1273,14 +1275,29 @@ def _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner):
     return X, B, np.broadcast_to(times, (B, times.size)).copy(), fns
 
 
+def _batch_workers(workers, B, group, owner):
+    """``closed_loop_batch``'s thread count: ``workers`` checked (an integer >= 1), or by
+    default 2 where this process may use two or more CPUs and runs outside a Dask
+    worker, else 1; never more than the batch has groups."""
+    if workers is None:
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        workers = 2 if cpus >= 2 and not _in_dask_worker() else 1
+    else:
+        workers = V.integer("workers", workers, minimum=1, owner=owner)
+    return max(1, min(workers, -(-B // group)))
+
+
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,
                       force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None,
-                      group=4, measure=None) -> ClosedLoop:
+                      group=4, measure=None, workers=None) -> ClosedLoop:
     """B closed loops (``closed_loop``'s arguments, one member per row of ``x0s`` (B, n))
     in one compiled program: ``closed_loop``'s ``lax.scan`` over periods, vmapped over
     groups of ``group`` members, the groups one after the other (``lax.map``; the last
-    group padded with copies of member 0, dropped from the result). Returns a
-    ``ClosedLoop`` whose arrays have a leading member axis.
+    group padded with copies of member 0, dropped from the result). With ``workers``
+    > 1 the members are cut into that many equal shares (a whole number of groups each,
+    the last padded with copies of its first member) that run the same compiled program
+    at once in threads of this process (XLA releases the GIL), joined in member order.
+    Returns a ``ClosedLoop`` whose arrays have a leading member axis.
 
     Why groups: XLA's CPU runtime compiles a loop whose body moves less than
     ``nhjax._xla_flags``' threshold of bytes per iteration as one function, and runs
@@ -1298,6 +1315,11 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         a member without that push).
     keys : (B,) PRNG keys (``jax.random.split(key, B)``), required with noise.
     group : members vmapped together (default 4).
+    workers : threads that run shares of the members at once (default: 2 on a machine
+        with two or more CPUs, else 1; never more than the batch has groups). The shares'
+        results equal those of one program to the last bit (each member's loop does not
+        depend on the others). Inside a Dask worker (``closed_loop_batch_on_client``)
+        the default is 1: the cluster's workers already share the cores.
     measure : as ``closed_loop``'s, for plants with a state of their own: ``x0s`` is
         then the plant's state with the members on axis 0 of every part (e.g. B
         attitudes (B, 3, 3)), and ``pushes`` are (time [s], function of the plant's
@@ -1318,6 +1340,9 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner,
         measure)
     B = jtu.tree_leaves(X)[0].shape[0]
+    group = min(group, B)
+    with as_problem_error():
+        workers = _batch_workers(workers, B, group, owner)
     if measure is None:
         y0 = X[0]
     else:  # the model's start of member 0 (noise-free): the first plan's inputs
@@ -1327,8 +1352,31 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     t0a = host_array(t0)
     if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members
         mpc = _with_qp(mpc, "riccati")
-    xs, ys, us, status, J, drift = _batch_program(
-        mpc, plant, plant_axis, jtu.tree_map(jnp.asarray, X), plan0.u, t0a, key_data, jnp.asarray(push_t),
-        jnp.asarray(push_dx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps, min(group, B), measure,
-        push_fns)
+    share = -(-(-(-B // group)) // workers) * group  # whole groups, equal shares: one program for all
+    per_member = (plant if plant_axis == 0 else None, X, key_data, push_t, push_dx)
+
+    def share_args(lo):
+        """The program's arguments for members lo .. lo + share - 1 (past B: copies of
+        member lo; host-side numpy slices), or for all members with one worker."""
+        parts = per_member
+        if workers > 1:
+            idx = np.arange(lo, lo + share)
+            idx = np.where(idx < B, idx, lo)
+            take = lambda v: np.asarray(v)[idx] if hasattr(v, "shape") and np.ndim(v) else v  # noqa: E731
+            parts = tuple(None if a is None else jtu.tree_map(take, a) for a in per_member)
+        pl, x, kd, pt, pdx = parts
+        return (mpc, plant if pl is None else pl, plant_axis, jtu.tree_map(jnp.asarray, x), plan0.u, t0a, kd,
+                jnp.asarray(pt), jnp.asarray(pdx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps,
+                group, measure, push_fns)
+
+    if workers == 1:
+        out = _batch_program(*share_args(0))
+    else:
+        starts = list(range(0, B, share))
+        args = [share_args(lo) for lo in starts]
+        _batch_program.prepare(*args[0])  # traced here once; the threads wait for its compile
+        with concurrent.futures.ThreadPoolExecutor(len(starts), thread_name_prefix="nhjax-mpc") as pool:
+            parts = list(pool.map(lambda a: jax.device_get(_batch_program(*a)), args))
+        out = jtu.tree_map(lambda *a: jnp.asarray(np.concatenate(a)[:B]), *parts)
+    xs, ys, us, status, J, drift = out
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

@@ -38,7 +38,8 @@ Members (``--members``, default 256; a fixed seed): start theta0 + U(-0.1, 0.1) 
 chi U(-0.2, 0.2) rad, shape rates U(-0.3, 0.3) rad/s, psi = 0; the plant's I1, lam and B
 each scaled by U(0.9, 1.1) (the model keeps the nominal ones). All members run in one
 compiled program (``controls.closed_loop_batch``: groups of 4 members vmapped together,
-the groups one after the other inside the program); the same loops one by one
+the groups one after the other inside the program, in ``--workers`` threads that each run
+an equal share of the members: by default 2 on two or more CPUs); the same loops one by one
 (``controls.closed_loop``, the compiled loop reused) give ``sequential_seconds``,
 measured on ``--sequential`` members (default 32) and scaled to all, said so in the JSON.
 Both are timed in two rounds interleaved (batch, sample, batch, sample; the machine may
@@ -53,7 +54,7 @@ that lands farthest from the target turn, drawn with its own plant's cylinders;
 ``--no-animation`` skips it).
 
 Usage: nhjax run mpc_cat [--out DIR] [--members 256] [--sequential 32] [--bound 1] [--mode rti]
-                        [--disturbance-gain 0.5] [--no-animation]
+                        [--disturbance-gain 0.5] [--workers N] [--no-animation]
 """
 
 import argparse
@@ -173,6 +174,8 @@ def main():
     ap.add_argument("--mode", choices=("rti", "converged"), default=MODE, help="MPC mode (default rti)")
     ap.add_argument("--disturbance-gain", type=float, default=DISTURBANCE_GAIN,
                     help=f"the disturbance observer's gain in [0, 1] (0: off; default {DISTURBANCE_GAIN:g})")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="threads of the batch (default: closed_loop_batch's, 2 on two or more CPUs)")
     ap.add_argument("--no-animation", action="store_true", help="skip the GIF")
     a = ap.parse_args()
     if a.members < 1 or not 1 <= a.sequential <= a.members:
@@ -184,6 +187,8 @@ def main():
         ap.error("--bound must be positive")
     if not 0 <= a.disturbance_gain <= 1:
         ap.error("--disturbance-gain must lie in [0, 1]")
+    if a.workers is not None and a.workers < 1:
+        ap.error("--workers must be at least 1")
     cat, ocp, mpc = setup(a.bound, a.mode, a.disturbance_gain)
     u0, st = nominal_plan(ocp)
     print(f"nominal plan: converged {bool(st.converged)} in {int(st.iterations)} iterations, cost {float(st.cost):.6g}")
@@ -192,7 +197,7 @@ def main():
     periods = INTERVALS  # period = interval: the whole shrinking horizon
     def run_batch():
         return controls.closed_loop_batch(mpc, stacked, X, periods, in_axes={"plant": 0}, u_guess=u0,
-                                          group=BATCH_GROUP)
+                                          group=BATCH_GROUP, workers=a.workers)
 
     def run_alone(i):
         return controls.closed_loop(mpc, cats[i], X[i], periods, u_guess=u0)
@@ -228,6 +233,7 @@ def main():
                 period_s=PERIOD, intervals=INTERVALS, T=T, theta0=TH0, turn=TURN, mode=a.mode, horizon="shrinking",
                 torque_bound=a.bound, hessian=HESSIAN, psi_scale=SCALE[2], disturbance_gain=a.disturbance_gain,
                 qp_single=mpc._qp_kind(), qp_batch="riccati", batch_group=BATCH_GROUP,
+                batch_workers=a.workers if a.workers is not None else "closed_loop_batch's default (2 threads on 2+ CPUs)",
                 terminal=f"penalty {WEIGHT:g}", success_threshold_deg=SUCCESS_DEG,
                 success_rate=float(ok.mean()),
                 final_attitude_error_deg_max=float(err_deg[ok].max()) if ok.any() else None,

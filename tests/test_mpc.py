@@ -248,6 +248,9 @@ def test_bad_input_gets_a_named_error_before_numerics():
         closed_loop(mpc, CAT, X0, 3, pushes=[(0.2, [0, 0, 0, np.nan, 0])])
     with pytest.raises(MPCError, match="members"):
         closed_loop_batch(mpc, CAT, np.array([X0, X0 * np.nan]), 3)
+    for bad in (0, 1.5, "two"):
+        with pytest.raises(MPCError, match="workers"):
+            closed_loop_batch(mpc, CAT, np.array([X0, X0]), 3, workers=bad)
     with pytest.raises(MPCError, match="covers"):
         closed_loop(MPC(ocp, PERIOD, N, horizon="shrinking"), CAT, X0, N + 1)
     assert issubclass(MPCError, ProblemError) and issubclass(MPCError, ValueError)
@@ -274,7 +277,9 @@ def test_batch_member_is_the_loop_run_alone():
     closed_loop on the member alone (the same numbers up to rounding). The loop alone
     solves its QPs densely (``qp="auto"`` picks "dense" for N m = 20 inputs), the batch
     by the Riccati recursion in groups of 2 members (the third member alone in a padded
-    group): the two solvers' steps agree through 25 closed-loop periods."""
+    group), by default in two threads (a share of one group each): the two solvers' steps
+    agree through 25 closed-loop periods. (The Dask test compares this batch with one
+    program of all three members, to 1e-12.)"""
     assert _regulator()[0]._qp_kind() == "dense"
     mpc, _ = _regulator()
     scales, plants, X, times, kicks, keys, noise = _batch_members([0, 1, 2])
