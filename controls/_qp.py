@@ -45,6 +45,39 @@ import jax.numpy as jnp
 __all__ = ["box_qp", "stage_qp"]
 
 
+# ------------------------------------------------------------------ LAPACK, one matrix at a time
+# jaxlib 0.10's batched LAPACK kernels split a large batch into tasks on XLA's CPU thread
+# pool and wait for them from a thread of that pool: two programs doing so at once (the
+# threads of closed_loop_batch(workers=...) or of a Dask worker) can hold every pool
+# thread waiting, and hang. Under vmap these run a lax.map of unbatched calls instead,
+# which jaxlib runs inline (the same LAPACK work: a batched call loops over the matrices).
+@jax.custom_batching.sequential_vmap
+def _lu_factor(K):
+    return jax.scipy.linalg.lu_factor(K)
+
+
+@jax.custom_batching.sequential_vmap
+def _lu_solve(lu, piv, r):
+    return jax.scipy.linalg.lu_solve((lu, piv), r)
+
+
+@jax.custom_batching.sequential_vmap
+def _solve(K, r):
+    return jnp.linalg.solve(K, r)
+
+
+@jax.custom_batching.sequential_vmap
+def _inv(M):
+    return jnp.linalg.inv(M)
+
+
+def _inv_each(M):
+    """The inverses of the matrices M (..., m, m), one LAPACK call per matrix."""
+    if M.ndim == 2:
+        return _inv(M)
+    return jax.vmap(_inv)(M.reshape((-1,) + M.shape[-2:])).reshape(M.shape)
+
+
 # ------------------------------------------------------------------ the iteration
 def _interior_point(ops, g, b, lo, hi, *, reg, max_iter, tol):
     """Mehrotra's predictor-corrector on  min g.d + d.H.d/2, A d = b, lo <= d <= hi.
@@ -167,17 +200,17 @@ def box_qp(H, g, A, b, lo, hi, *, max_iter=50, tol=1e-11):
 
     def factor(sig):
         K = jnp.block([[H + jnp.diag(sig), -A.T], [A, -reg * jnp.eye(me)]])
-        return jax.scipy.linalg.lu_factor(K)
+        return _lu_factor(K)
 
     def solve(lu, r1, r2):
-        sol = jax.scipy.linalg.lu_solve(lu, jnp.concatenate([r1, r2]))
+        sol = _lu_solve(*lu, jnp.concatenate([r1, r2]))
         return sol[:n], sol[n:]
 
     def polish(fixed, bound):
         Hf = jnp.where(fixed[:, None], jnp.eye(n), H)
         Af = jnp.where(fixed[:, None], 0.0, -A.T)
         K = jnp.block([[Hf, Af], [A, jnp.zeros((me, me))]])
-        sol = jnp.linalg.solve(K, jnp.concatenate([jnp.where(fixed, bound, -g), b]))
+        sol = _solve(K, jnp.concatenate([jnp.where(fixed, bound, -g), b]))
         return sol[:n], sol[n:]
 
     ops = dict(hd_aty=lambda d, y: (H @ d - A.T @ y, A @ d), factor=factor, solve=solve, polish=polish)
@@ -189,10 +222,10 @@ def _spd_inverse(M):
     """The inverse of the symmetric positive definite matrices M (..., m, m), by a
     Cholesky factorization M = L L^T unrolled over the m^2 entries (element-wise
     operations on the leading axes, which XLA vectorizes over a batch; no LAPACK call).
-    For m > 8 (the unrolled program would grow as m^3), ``jnp.linalg.inv``."""
+    For m > 8 (the unrolled program would grow as m^3), LAPACK, one matrix at a time."""
     m = M.shape[-1]
     if m > 8:
-        return jnp.linalg.inv(M)
+        return _inv_each(M)
     Lf = [[None] * m for _ in range(m)]
     for j in range(m):
         s = M[..., j, j] - sum((Lf[j][k] ** 2 for k in range(j)), jnp.zeros(M.shape[:-2], M.dtype))
@@ -330,7 +363,7 @@ def stage_qp(Q, q, A, B, c, e0, P, p, C, b, lo, hi, *, max_iter=50, tol=1e-11):
             return fac, None
         resp = jax.vmap(lambda cj: _riccati_sweep(fac, A, B, zN, zm, -cj, zN, zn))(C)
         Wu, WxN = resp[0], resp[1][:, -1]
-        return fac, (jnp.linalg.inv(C @ WxN.T - reg * jnp.eye(me)), Wu, WxN)
+        return fac, (_inv(C @ WxN.T - reg * jnp.eye(me)), Wu, WxN)
 
     def solve(facs, r1, r2):
         fac, eq = facs
@@ -358,7 +391,7 @@ def stage_qp(Q, q, A, B, c, e0, P, p, C, b, lo, hi, *, max_iter=50, tol=1e-11):
             return u0.reshape(-1), jnp.zeros(0)
         resp = jax.vmap(lambda cj: _riccati_sweep(fac, A, B_f, zN, zm, -cj, zN, zn))(C)
         Wu, WxN = resp[0], resp[1][:, -1]
-        y = jnp.linalg.solve(C @ WxN.T, b - C @ xs[-1])
+        y = _solve(C @ WxN.T, b - C @ xs[-1])
         return (u0 + jnp.einsum("j,jkm->km", y, Wu)).reshape(-1), y
 
     ops = dict(hd_aty=hd_aty, factor=factor, solve=solve, polish=polish)

@@ -480,6 +480,58 @@ def test_two_batches_at_once_in_one_process_finish(tmp_path):
     assert r.returncode == 0 and r.stdout.strip().endswith("done"), r.stderr[-3000:]
 
 
+def _batched_lapack_calls(lowered):
+    """The LAPACK custom calls of a lowered program that take a batch of matrices (an
+    operand of rank 3 or more)."""
+    import re
+
+    return [line.strip()[:160] for line in lowered.as_text().splitlines() if "lapack_" in line
+            and any(t.count("x") >= 3 for t in re.findall(r"tensor<((?:\d+x)+)f64>", line))]
+
+
+def test_vmapped_qps_and_floors_call_lapack_one_matrix_at_a_time():
+    """Under vmap, the controller's linear algebra (box_qp's LU, stage_qp's terminal
+    solves, the Riccati blocks' inverses for more than 8 inputs, the Hessian floor's
+    eigh) makes no batched LAPACK call, whose jaxlib 0.10 kernel can hang two programs
+    running at once; each member's result is the unbatched call's, bit for bit, and the
+    floor is numpy's eigendecomposition with the eigenvalues floored, to 1e-12."""
+    from controls._qp import _spd_inverse
+    from controls.mpc import _hessian_floor
+
+    rng = np.random.default_rng(5)
+    N, n, m, me, K = 6, 3, 2, 2, 3
+    R = rng.standard_normal((K, N, n + m, n + m))
+    Q = 0.3 * np.einsum("bkij,bklj->bkil", R, R) + np.diag(np.r_[np.zeros(n), 0.1 * np.ones(m)])
+    args = [Q, rng.standard_normal((K, N, n + m)), np.eye(n) + 0.2 * rng.standard_normal((K, N, n, n)),
+            rng.standard_normal((K, N, n, m)), 0.1 * rng.standard_normal((K, N, n)), rng.standard_normal((K, n))]
+    R2 = rng.standard_normal((K, n, n))
+    args += [R2 @ np.swapaxes(R2, 1, 2), rng.standard_normal((K, n)), rng.standard_normal((K, me, n)),
+             0.1 * rng.standard_normal((K, me)), np.full((K, N, m), -0.3), np.full((K, N, m), 0.4)]
+    args = [jnp.asarray(a) for a in args]
+    H, g, Ac, bc = [], [], [], []
+    for k in range(K):
+        Hk, gk, Ak, bk, _, _ = _condensed(*(np.asarray(a[k]) for a in args[:10]))
+        H.append(Hk), g.append(gk), Ac.append(Ak), bc.append(bk)
+    box = [jnp.asarray(np.stack(a)) for a in (H, g, Ac, bc)] + [args[10].reshape(K, -1), args[11].reshape(K, -1)]
+    M = rng.standard_normal((K, 4, 10, 10))
+    spd = jnp.asarray(np.einsum("bkij,bklj->bkil", M, M) + np.eye(10))
+    Hf = jnp.asarray(rng.standard_normal((K, 7, 7)))
+    cases = [(box_qp, box), (stage_qp, args), (_spd_inverse, [spd]), (lambda q: _hessian_floor(q, 1e-3), [Hf])]
+    for fn, a in cases:
+        batched = jax.jit(jax.vmap(fn))
+        assert _batched_lapack_calls(batched.lower(*a)) == []
+        out = batched(*a)
+        for k in range(K):
+            alone = jax.jit(fn)(*(x[k] for x in a))
+            for u, v in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(alone)):
+                np.testing.assert_array_equal(np.asarray(u)[k], np.asarray(v))
+    w, V = np.linalg.eigh(0.5 * (np.asarray(Hf) + np.swapaxes(np.asarray(Hf), 1, 2)))
+    floored = np.einsum("bij,bj,bkj->bik", V, np.maximum(w, 1e-3), V)
+    np.testing.assert_allclose(np.asarray(jax.vmap(lambda q: _hessian_floor(q, 1e-3))(Hf)), floored, rtol=0,
+                               atol=1e-12)
+    assert (w < 1e-3).any() and (w > 1e-3).any()  # the floor binds on some eigenvalues, not all
+
+
 def test_box_qp_meets_its_optimality_conditions():
     """A random strictly convex QP with two equalities and a box that binds: the
     returned step and multipliers satisfy stationarity, feasibility and
