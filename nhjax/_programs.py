@@ -57,6 +57,7 @@ import importlib.metadata
 import json
 import os
 import pickle
+import re
 import threading
 import types
 from pathlib import Path
@@ -1011,12 +1012,13 @@ def _compile(program, specs, options: dict, exe_path: Path):
                 raise
             options.pop(next(reversed(options)))
     STATS["compiled"] += 1
+    batched = batched_lapack(exe)
     if _HITS.count or not _portable(out_def):
         # JAX's persistent cache had it after all (another JAX keeps its switch
         # elsewhere): an executable loaded from there serializes into one that misses
         # kernels when loaded again (jaxlib 0.10), so keep none; nor one whose outputs a
         # new process could not rebuild
-        return exe, out_def
+        return one_at_a_time(exe, batched), out_def
     try:
         from jax.experimental import serialize_executable
 
@@ -1024,11 +1026,11 @@ def _compile(program, specs, options: dict, exe_path: Path):
         examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
         devices = [d.id for d in exe.runtime_executable().local_devices()]
         # JAX's serialized executable is a pickle itself: read back only when trusted
-        _store(exe_path, _pack({"lapack": _uses_lapack(exe), "devices": devices},
+        _store(exe_path, _pack({"lapack": _uses_lapack(exe), "batched_lapack": batched, "devices": devices},
                                out_def, pickle.dumps((examples, payload))))
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
-    return exe, out_def
+    return one_at_a_time(exe, batched), out_def
 
 
 _HITS = threading.local()  # JAX persistent-cache hits of this thread's current compile
@@ -1065,6 +1067,44 @@ def _watch_cache_hits():
             _HITS.count = getattr(_HITS, "count", 0) + 1
 
     jax.monitoring.register_event_listener(listener)
+
+
+#: Held while a program that calls a LAPACK kernel on a batch of matrices runs.
+_BATCHED_LAPACK = threading.Lock()
+
+_BATCH_SHAPE = re.compile(r"(?:f32|f64|c64|c128)\[\d+,\d+,\d+")
+
+
+def batched_lapack(exe) -> bool:
+    """Whether a compiled program (its optimized HLO) calls a LAPACK kernel on a batch of
+    matrices (an operand of rank 3 or more: a vmapped solve, eigh, SVD, ...).
+
+    jaxlib 0.10's batched LAPACK kernels split a large batch into tasks on XLA's CPU
+    thread pool and block the pool thread they run on until those tasks finish. Two
+    such programs running at once (the chunks of ``simulate_batch`` in its worker
+    threads, the shares of ``closed_loop_batch``, a Dask worker's threads) can hold
+    every thread of the pool waiting and hang; seen with the constrained scenes'
+    lock-step chunks (LU of 128 KKT matrices, SVD in the member checks). nhjax runs
+    such programs one at a time (``one_at_a_time``)."""
+    try:
+        text = exe.as_text()
+    except Exception:  # noqa: BLE001 - no text: assume it does
+        return True
+    return any(_BATCH_SHAPE.search(line) for line in text.splitlines()
+               if 'custom_call_target="lapack' in line)
+
+
+def one_at_a_time(exe, batched: bool = True):
+    """``exe`` (a callable program) run under a process-wide lock, to completion, when
+    ``batched`` (see ``batched_lapack``); ``exe`` itself otherwise."""
+    if not batched:
+        return exe
+
+    def run(*args):
+        with _BATCHED_LAPACK:
+            return jax.block_until_ready(exe(*args))
+
+    return run
 
 
 def _uses_lapack(exe) -> bool:
@@ -1159,7 +1199,8 @@ def _load_executable(path: Path):
         return None
     STATS["loaded"] += 1
     STATS["executables"] += 1
-    return exe, out_def
+    # (files stored before the flag existed: any LAPACK call counts as batched)
+    return one_at_a_time(exe, head.get("batched_lapack", lapack)), out_def
 
 
 class _HeldOff:

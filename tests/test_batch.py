@@ -433,3 +433,41 @@ def test_members_off_their_group_are_named_and_not_solved():
     one = nhjax.simulate(att, jax.tree_util.tree_map(lambda a: a[1], bad), 1.0, project=True, saveat=2)
     for a, b in zip(jax.tree_util.tree_leaves(fixed.xs), jax.tree_util.tree_leaves(one.xs)):
         np.testing.assert_allclose(a[1], b, rtol=1e-12, atol=1e-12)
+
+
+_TWO_CHUNKS_CHILD = """
+import numpy as np, jax.tree_util as jtu
+import nhjax
+from nhjax.scenes import BallOnPlatter
+
+system = BallOnPlatter()
+x0 = system.initial_state()
+X = jtu.tree_map(lambda a: np.stack([np.asarray(a)] * 512), x0)
+alone = nhjax.simulate_batch(system, X, 1.0, progress=False, workers=1)
+for _ in range(3):
+    bt = nhjax.simulate_batch(system, X, 1.0, progress=False)  # two chunks, two threads
+    for a, b in zip(jtu.tree_leaves(bt.x_final), jtu.tree_leaves(alone.x_final)):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+print("done")
+"""
+
+
+@pytest.mark.slow(reason="compiles the ball-on-platter chunk of 256 lanes in a child process (~25 s); make test-all")
+def test_two_chunks_with_batched_lapack_calls_at_once_finish(tmp_path):
+    """simulate_batch of 512 balls on a platter (a constrained scene: its lock-step chunk
+    solves 128 KKT systems per stage by one batched LAPACK call) in two chunks on the
+    default two threads, three times: it finishes, each time equal to the batch run on
+    one thread. Before nhjax ran such programs one at a time, the first such batch
+    hung (jaxlib 0.10's batched kernels wait on XLA's thread pool from a thread of it).
+    The child is killed after 300 s, so a hang fails the test."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    try:
+        r = subprocess.run([sys.executable, "-c", _TWO_CHUNKS_CHILD], capture_output=True, text=True, env=env,
+                           timeout=300)
+    except subprocess.TimeoutExpired:
+        pytest.fail("two chunks with batched LAPACK calls did not finish in 300 s (hung)")
+    assert r.returncode == 0 and r.stdout.strip().endswith("done"), r.stderr[-3000:]

@@ -123,6 +123,45 @@ def test_a_damaged_executable_is_compiled_again(tmp_path, monkeypatch):
     np.testing.assert_array_equal(third["y"], first["y"])
 
 
+def test_programs_with_batched_lapack_calls_run_one_at_a_time(tmp_path, monkeypatch):
+    """A program that calls LAPACK on a batch of matrices (a vmapped solve) is detected
+    in its compiled HLO, the flag is kept with its stored executable, and the program
+    runs under nhjax's lock (compiled or loaded back): jaxlib 0.10's batched kernels
+    block a thread of XLA's pool, and two such programs at once could hold every pool
+    thread. A single solve or plain arithmetic is not flagged and runs without the lock.
+    The results are plain jit's, bit for bit."""
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    rng = np.random.default_rng(0)
+    A, b = jnp.asarray(rng.standard_normal((3, 4, 4)) + 4 * np.eye(4)), jnp.asarray(rng.standard_normal((3, 4)))
+    batched = _user_function("def f(A, b):\n    return {'x': jax.vmap(jnp.linalg.solve)(A, b)}\n", "f", jax=jax)
+    single = _user_function("def g(A, b):\n    return {'x': jnp.linalg.solve(A[0], b[0])}\n", "g")
+    plain = _user_function("def h(A, b):\n    return {'x': jnp.sin(A).sum(0) @ b[0]}\n", "h")
+    assert _programs.batched_lapack(jax.jit(batched).lower(A, b).compile())
+    assert not _programs.batched_lapack(jax.jit(single).lower(A, b).compile())
+    assert not _programs.batched_lapack(jax.jit(plain).lower(A, b).compile())
+    held = []
+
+    class Spy:  # the lock, recording whether it was taken
+        def __enter__(self):
+            held.append(True)
+
+        def __exit__(self, *exc):
+            return False
+
+    monkeypatch.setattr(_programs, "_BATCHED_LAPACK", Spy())
+    for name, fn, locked in (("b", batched, True), ("s", single, False), ("p", plain, False)):
+        for fresh in (True, False):  # compiled here, then loaded back from disk
+            if not fresh:
+                monkeypatch.setattr(_programs, "_MEMORY", {})
+            held.clear()
+            out = _programs.call(f"test-lapack-{name}", fn, (A, b))
+            assert held == ([True] if locked else []), (name, fresh)
+            np.testing.assert_array_equal(out["x"], jax.jit(fn)(A, b)["x"])
+    heads = [_programs._unpack(_programs._read(p))[0] for p in sorted(tmp_path.glob("*.exe"))]
+    assert sorted(h["batched_lapack"] for h in heads) == [False, False, True]
+
+
 _CHILD = """
 import json, sys, importlib
 import numpy as np, jax, nhjax

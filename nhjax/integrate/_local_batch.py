@@ -217,12 +217,16 @@ _COMPILER_OPTIONS = {"xla_cpu_prefer_vector_width": 512, "xla_cpu_experimental_y
 
 
 def _compile(lowered, options):
+    """The lowered chunk compiled (options this XLA does not know dropped), run one at a
+    time if it calls LAPACK on a batch of matrices (``_programs.batched_lapack``: the
+    chunks run in several threads at once)."""
     try:
-        return lowered.compile(compiler_options=options)
+        exe = lowered.compile(compiler_options=options)
     except Exception:  # an option this XLA does not have
         if not options:
             raise
         return _compile(lowered, dict(list(options.items())[:-1]))
+    return _programs.one_at_a_time(exe, _programs.batched_lapack(exe))
 
 
 #: Fewest members per worker for which splitting a batch across workers pays (a smaller
