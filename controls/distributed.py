@@ -223,9 +223,10 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
         every attempt of chunk ``index``.
 
     Threads: a worker with several threads runs several chunks in one process at once.
-    The controller keeps batched LAPACK calls out of its programs for that reason (the
-    Hessian floor's eigendecompositions run one matrix at a time: see
-    ``controls.mpc._hessian_floor``); tests/test_mpc.py runs two batches at once.
+    The controller keeps batched LAPACK calls out of its programs for that reason (its
+    Hessian floors and QP solves run one matrix at a time under vmap), and nhjax runs
+    any stored program that makes such calls (a plant's, say) one at a time
+    (``nhjax._programs.batched_lapack``); tests/test_mpc.py runs two batches at once.
     """
     import jax
     import jax.tree_util as jtu
