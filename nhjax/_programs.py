@@ -1012,7 +1012,7 @@ def _compile(program, specs, options: dict, exe_path: Path):
                 raise
             options.pop(next(reversed(options)))
     STATS["compiled"] += 1
-    batched = batched_lapack(exe)
+    uses_lapack, batched = _lapack_calls(exe)
     if _HITS.count or not _portable(out_def):
         # JAX's persistent cache had it after all (another JAX keeps its switch
         # elsewhere): an executable loaded from there serializes into one that misses
@@ -1026,7 +1026,7 @@ def _compile(program, specs, options: dict, exe_path: Path):
         examples = [jtu.tree_unflatten(t, [0] * t.num_leaves) for t in (in_tree, out_tree)]
         devices = [d.id for d in exe.runtime_executable().local_devices()]
         # JAX's serialized executable is a pickle itself: read back only when trusted
-        _store(exe_path, _pack({"lapack": _uses_lapack(exe), "batched_lapack": batched, "devices": devices},
+        _store(exe_path, _pack({"lapack": uses_lapack, "batched_lapack": batched, "devices": devices},
                                out_def, pickle.dumps((examples, payload))))
     except Exception:  # noqa: BLE001 - an executable that cannot be serialized: JAX's cache still has it
         pass
@@ -1086,12 +1086,7 @@ def batched_lapack(exe) -> bool:
     every thread of the pool waiting and hang; seen with the constrained scenes'
     lock-step chunks (LU of 128 KKT matrices, SVD in the member checks). nhjax runs
     such programs one at a time (``one_at_a_time``)."""
-    try:
-        text = exe.as_text()
-    except Exception:  # noqa: BLE001 - no text: assume it does
-        return True
-    return any(_BATCH_SHAPE.search(line) for line in text.splitlines()
-               if 'custom_call_target="lapack' in line)
+    return _lapack_calls(exe)[1]
 
 
 def one_at_a_time(exe, batched: bool = True):
@@ -1107,13 +1102,17 @@ def one_at_a_time(exe, batched: bool = True):
     return run
 
 
-def _uses_lapack(exe) -> bool:
-    """Whether a compiled program calls LAPACK (then ``_initialize_lapack`` must run
-    before it is loaded; otherwise a warm process need not import what that takes)."""
+def _lapack_calls(exe) -> tuple[bool, bool]:
+    """(whether a compiled program calls LAPACK at all, whether on a batch of matrices:
+    ``batched_lapack``), from one reading of its HLO text. The first decides whether
+    ``_initialize_lapack`` must run before the program is loaded (otherwise a warm
+    process need not import what that takes)."""
     try:
-        return "lapack" in exe.as_text().lower()
-    except Exception:  # noqa: BLE001 - no text: assume it does
-        return True
+        text = exe.as_text()
+    except Exception:  # noqa: BLE001 - no text: assume it does, both
+        return True, True
+    calls = [line for line in text.splitlines() if 'custom_call_target="lapack' in line]
+    return "lapack" in text.lower(), any(_BATCH_SHAPE.search(line) for line in calls)
 
 
 @contextlib.contextmanager

@@ -480,15 +480,6 @@ def test_two_batches_at_once_in_one_process_finish(tmp_path):
     assert r.returncode == 0 and r.stdout.strip().endswith("done"), r.stderr[-3000:]
 
 
-def _batched_lapack_calls(lowered):
-    """The LAPACK custom calls of a lowered program that take a batch of matrices (an
-    operand of rank 3 or more)."""
-    import re
-
-    return [line.strip()[:160] for line in lowered.as_text().splitlines() if "lapack_" in line
-            and any(t.count("x") >= 3 for t in re.findall(r"tensor<((?:\d+x)+)f64>", line))]
-
-
 def test_vmapped_qps_and_floors_call_lapack_one_matrix_at_a_time():
     """Under vmap, the controller's linear algebra (box_qp's LU, stage_qp's terminal
     solves, the Riccati blocks' inverses for more than 8 inputs, the Hessian floor's
@@ -497,6 +488,7 @@ def test_vmapped_qps_and_floors_call_lapack_one_matrix_at_a_time():
     floor is numpy's eigendecomposition with the eigenvalues floored, to 1e-12."""
     from controls._qp import _spd_inverse
     from controls.mpc import _hessian_floor
+    from nhjax import _programs
 
     rng = np.random.default_rng(5)
     N, n, m, me, K = 6, 3, 2, 2, 3
@@ -518,8 +510,8 @@ def test_vmapped_qps_and_floors_call_lapack_one_matrix_at_a_time():
     Hf = jnp.asarray(rng.standard_normal((K, 7, 7)))
     cases = [(box_qp, box), (stage_qp, args), (_spd_inverse, [spd]), (lambda q: _hessian_floor(q, 1e-3), [Hf])]
     for fn, a in cases:
-        batched = jax.jit(jax.vmap(fn))
-        assert _batched_lapack_calls(batched.lower(*a)) == []
+        batched = jax.jit(jax.vmap(fn)).lower(*a).compile()
+        assert not _programs.batched_lapack(batched)
         out = batched(*a)
         for k in range(K):
             alone = jax.jit(fn)(*(x[k] for x in a))
