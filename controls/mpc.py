@@ -229,12 +229,8 @@ def _hessian_floor(Q, eps):
     """The symmetric matrix Q with its eigenvalues floored at eps (positive definite).
 
     Under ``vmap`` the matrices are floored one after the other (``sequential_vmap``: a
-    ``lax.map``; nested vmaps nest the maps), never by one batched LAPACK call: jaxlib
-    0.10's batched ``eigh`` (as its other batched LAPACK kernels) splits a large batch
-    into tasks on XLA's CPU thread pool and blocks a pool thread until they finish, so
-    two programs running it at once (two threads of a process, or of a Dask worker)
-    can hold every pool thread waiting for each other's tasks, and hang. An unbatched
-    call runs inline."""
+    ``lax.map``; nested vmaps nest the maps), never by one batched LAPACK call, which
+    can hang two programs running at once (see the note above ``controls._qp._lu_factor``)."""
     w, Vv = jnp.linalg.eigh(0.5 * (Q + Q.T))
     return (Vv * jnp.maximum(w, eps)) @ Vv.T
 
