@@ -54,7 +54,7 @@ from .pontryagin import (
 from ._result import DirectResult
 from .newton import _control_cost_hessian
 from .newton import _Shooting as _DirectShooting
-from .problem import OCP, ProblemError, Progress, check_tolerances, compiled, host_array
+from .problem import OCP, ProblemError, Progress, batch_workers, check_tolerances, compiled, host_array, run_in_shares
 from .sqp import _check_sqp, parameter_bounds, sqp_iteration
 
 __all__ = ["BatchResult", "DirectBatchResult", "GridError", "solve_direct_batch", "solve_pontryagin_batch",
@@ -315,6 +315,7 @@ def solve_pontryagin_batch(
     grid: tuple | None = None,
     grid_rounds: int = 8,
     progress: bool = True,
+    workers: int | None = None,
 ) -> BatchResult:
     """Single-shooting Pontryagin solves of many problems of one structure in one program.
 
@@ -355,6 +356,11 @@ def solve_pontryagin_batch(
         4.6 J s straight from its loop, against 0.48 J s by continuation in the turn
         (experiments/somersault_map.py walks the turn in stages).
     progress : a progress line when the batch ends, with the status counts.
+    workers : threads that run shares of the members at once, each share the same
+        compiled program (default: 2 where the process may use two or more CPUs, 1
+        inside a Dask worker, never more than the batch has groups of ``lanes``
+        members). A member's answer does not depend on the share it ran in (to the
+        last bit).
 
     Each member's answer is that of ``solve_pontryagin`` on it alone with the same
     options (the same iteration, vmapped). Returns a ``BatchResult``; nothing is raised
@@ -377,6 +383,8 @@ def solve_pontryagin_batch(
     else:
         stacked, first, B = given
     coords = None if grid is None else _grid_coordinates(grid, B, owner)
+    lanes = min(int(lanes), B)
+    workers = batch_workers(workers, B, lanes, owner)
     rt, at = host_array(rtol), host_array(atol)
     sh = _Shooting(HamiltonianSystem(first, u_star), rt, at, 1, int(max_ode_steps))
     n, m = first.x0.shape[0], first.n_constraints
@@ -384,10 +392,15 @@ def solve_pontryagin_batch(
     z0 = np.concatenate([P0, NU], axis=1)
     stacked, z0, finite = _screen(stacked, z0, owner)
     bar = Progress(progress, 1, f"Pontryagin batch of {B} ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
-    options = (*_root_options(tol, max_steps, solver), min(int(lanes), B))
+    options = (*_root_options(tol, max_steps, solver), lanes)
+    members = jtu.tree_map(lambda a: np.asarray(a) if eqx.is_array(a) else a, stacked)  # (every array: B rows)
 
     def run(z0):
-        z, res, steps, traj, us, cost, viol = _indirect_batch(sh, stacked, z0, *options)
+        def args_of(idx):
+            pick = jtu.tree_map(lambda a: jnp.asarray(a[idx]) if isinstance(a, np.ndarray) else a, members)
+            return (sh, pick, z0[idx], *options)
+
+        z, res, steps, traj, us, cost, viol = run_in_shares(_indirect_batch, args_of, B, workers, lanes)
         out = [np.array(a, float) for a in (z, res, cost, viol, traj.xs, traj.ts, us)]
         return [*out, np.array(steps)]
 

@@ -97,10 +97,8 @@ members (starts, disturbances, plant parameters), the groups one after the other
 
 from __future__ import annotations
 
-import concurrent.futures
 import copy
 import dataclasses
-import os
 import time
 from typing import Any
 
@@ -118,7 +116,7 @@ from nhjax.mechanics import AbstractSystem
 from nhjax.errors import NhjaxError
 
 from ._qp import box_qp, stage_qp
-from .problem import OCP, ProblemError, _in_dask_worker, compiled, host_array
+from .problem import OCP, ProblemError, batch_workers, compiled, host_array, run_in_shares
 
 __all__ = [
     "MPC",
@@ -1271,18 +1269,6 @@ def _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner):
     return X, B, np.broadcast_to(times, (B, times.size)).copy(), fns
 
 
-def _batch_workers(workers, B, group, owner):
-    """``closed_loop_batch``'s thread count: ``workers`` checked (an integer >= 1), or by
-    default 2 where this process may use two or more CPUs and runs outside a Dask
-    worker, else 1; never more than the batch has groups."""
-    if workers is None:
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        workers = 2 if cpus >= 2 and not _in_dask_worker() else 1
-    else:
-        workers = V.integer("workers", workers, minimum=1, owner=owner)
-    return max(1, min(workers, -(-B // group)))
-
-
 def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None, pushes=None,
                       force_noise=0.0, measurement_noise=0.0, keys=None, plant_substeps=None,
                       group=4, measure=None, workers=None) -> ClosedLoop:
@@ -1338,7 +1324,7 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     B = jtu.tree_leaves(X)[0].shape[0]
     group = min(group, B)
     with as_problem_error():
-        workers = _batch_workers(workers, B, group, owner)
+        workers = batch_workers(workers, B, group, owner)
     if measure is None:
         y0 = X[0]
     else:  # the model's start of member 0 (noise-free): the first plan's inputs
@@ -1348,31 +1334,17 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     t0a = host_array(t0)
     if mpc.qp == "auto":  # the Riccati QP, whose small operations vectorize over the members
         mpc = _with_qp(mpc, "riccati")
-    share = -(-(-(-B // group)) // workers) * group  # whole groups, equal shares: one program for all
     per_member = (plant if plant_axis == 0 else None, X, key_data, push_t, push_dx)
 
-    def share_args(lo):
-        """The program's arguments for members lo .. lo + share - 1 (past B: copies of
-        member lo; host-side numpy slices), or for all members with one worker."""
-        parts = per_member
-        if workers > 1:
-            idx = np.arange(lo, lo + share)
-            idx = np.where(idx < B, idx, lo)
-            take = lambda v: np.asarray(v)[idx] if hasattr(v, "shape") and np.ndim(v) else v  # noqa: E731
-            parts = tuple(None if a is None else jtu.tree_map(take, a) for a in per_member)
-        pl, x, kd, pt, pdx = parts
+    def args_of(idx):
+        """The program's arguments for members ``idx`` (host-side numpy indexing)."""
+        take = lambda v: np.asarray(v)[idx] if hasattr(v, "shape") and np.ndim(v) else v  # noqa: E731
+        pl, x, kd, pt, pdx = (None if a is None else jtu.tree_map(take, a) for a in per_member)
         return (mpc, plant if pl is None else pl, plant_axis, jtu.tree_map(jnp.asarray, x), plan0.u, t0a, kd,
                 jnp.asarray(pt), jnp.asarray(pdx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps,
                 group, measure, push_fns)
 
-    if workers == 1:
-        out = _batch_program(*share_args(0))
-    else:
-        starts = list(range(0, B, share))
-        args = [share_args(lo) for lo in starts]
-        _batch_program.prepare(*args[0])  # traced here once; the threads wait for its compile
-        with concurrent.futures.ThreadPoolExecutor(len(starts), thread_name_prefix="nhjax-mpc") as pool:
-            parts = list(pool.map(lambda a: jax.device_get(_batch_program(*a)), args))
-        out = jtu.tree_map(lambda *a: jnp.asarray(np.concatenate(a)[:B]), *parts)
+    # whole groups in equal shares (one program for all), run at once in threads
+    out = jtu.tree_map(jnp.asarray, run_in_shares(_batch_program, args_of, B, workers, group, "nhjax-mpc"))
     xs, ys, us, status, J, drift = out
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

@@ -33,8 +33,10 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 
 import collections
+import concurrent.futures
 import contextlib
 import functools
+import os
 import sys
 
 import numpy as np
@@ -160,6 +162,42 @@ def _in_dask_worker() -> bool:
     except (ValueError, AttributeError):
         return False
     return True
+
+
+def batch_workers(workers, B, unit, owner):
+    """The number of threads a batched solver runs its members in: ``workers`` checked
+    (an integer >= 1), or by default 2 where this process may use two or more CPUs and
+    runs outside a Dask worker (whose cluster already shares the cores), else 1; never
+    more than the batch has units of ``unit`` members (its vmapped groups)."""
+    if workers is None:
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        workers = 2 if cpus >= 2 and not _in_dask_worker() else 1
+    else:
+        with as_problem_error():
+            workers = V.integer("workers", workers, minimum=1, owner=owner)
+    return max(1, min(workers, -(-B // unit)))
+
+
+def run_in_shares(program, args_of, B, workers, unit, name="nhjax-batch"):
+    """``program(*args_of(idx))`` over B members cut into ``workers`` equal shares of
+    whole units (the members ``idx`` of each share; past B, copies of the share's first
+    member), run at once in threads of this process, each result copied to the host and
+    the shares joined in member order (the padding dropped): one compiled program (the
+    shares have one shape) that XLA runs on both cores, releasing the GIL. With one
+    worker: ``program(*args_of(arange(B)))`` as it is. ``program`` is a ``compiled``
+    function (its ``prepare`` traces it once before the threads start)."""
+    if workers == 1:
+        return program(*args_of(np.arange(B)))
+    share = -(-(-(-B // unit)) // workers) * unit
+    starts = list(range(0, B, share))
+    args = []
+    for lo in starts:
+        idx = np.arange(lo, lo + share)
+        args.append(args_of(np.where(idx < B, idx, lo)))
+    program.prepare(*args[0])  # traced here once; the threads wait for its compile
+    with concurrent.futures.ThreadPoolExecutor(len(starts), thread_name_prefix=name) as pool:
+        parts = list(pool.map(lambda a: jax.device_get(program(*a)), args))
+    return jtu.tree_map(lambda *a: np.concatenate(a)[:B], *parts)
 
 
 class Progress:

@@ -63,6 +63,16 @@ def test_each_member_is_its_own_solve_and_the_loop_members_are_exact():
     ts, xs, us = r.ts[1], r.xs[1], r.controls[1]
     theta = xs[0, 0] + np.concatenate([[0.0], np.cumsum(0.5 * (us[1:, 0] + us[:-1, 0]) * np.diff(ts))])
     assert np.abs(theta - xs[:, 0]).max() < 1e-4
+    # by default the members run as two shares of one program in two threads: one program
+    # of all four gives the same bits, and so do three members (the second share padded
+    # with a copy of its first member)
+    fields = ("p0", "nu", "cost", "violation", "residual", "iterations", "xs", "ts", "controls")
+    whole = controls.solve_pontryagin_batch(ocps, z[:, :3], z[:, 3:], progress=False, workers=1)
+    three = controls.solve_pontryagin_batch(ocps[:3], z[:3, :3], z[:3, 3:], progress=False, workers=2)
+    for f in fields:
+        np.testing.assert_array_equal(getattr(whole, f), getattr(r, f), err_msg=f)
+        np.testing.assert_array_equal(getattr(three, f), getattr(r, f)[:3], err_msg=f)
+    assert list(three.status) == list(r.status[:3])
     # the same grid as one stack of problems gives the same answers; a field set for the
     # whole stack at once (members 1 and 2 back on their loops' holonomy) gives each
     # member its new problem's answer: the loop's closed form; member 0 is untouched
@@ -94,6 +104,9 @@ def test_members_that_differ_in_structure_are_refused_by_name():
         controls.solve_pontryagin_batch([chart, chart], np.zeros((3, 3)), progress=False)
     with pytest.raises(controls.ProblemError, match="non-empty"):
         controls.solve_pontryagin_batch([], progress=False)
+    for bad in (0, 1.5, "two", True):  # the thread count, checked before any numerics
+        with pytest.raises(controls.ProblemError, match="workers"):
+            controls.solve_pontryagin_batch([chart, chart], progress=False, workers=bad)
     # a stack whose horizon was set without the members' axis
     bad = eqx.tree_at(lambda g: g.T, controls.stack_members([chart, chart]), np.asarray(T))
     with pytest.raises(controls.GridError, match=r"\.T of shape \(\)"):
