@@ -197,14 +197,17 @@ def _closed_loop_chunk(index, mpc, plant, X, periods, kwargs, on_chunk):
 
 def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=None, t0=0.0, u_guess=None,
                                 pushes=None, force_noise=0.0, measurement_noise=0.0, keys=None,
-                                plant_substeps=None, group=4, chunk_members=None, retries=2, progress=False,
-                                on_chunk=None):
+                                plant_substeps=None, group=4, measure=None, chunk_members=None, retries=2,
+                                progress=False, on_chunk=None):
     """``controls.closed_loop_batch`` with its members split into chunks that run on the
     workers of a ``dask.distributed.Client``, joined into one ``ClosedLoop`` (arrays
     with a leading member axis, members in order).
 
-    Every argument from ``mpc`` to ``group`` is ``closed_loop_batch``'s and is checked
-    here, before any task is sent (``MPCError`` as there). Each member's loop does not
+    Every argument from ``mpc`` to ``measure`` is ``closed_loop_batch``'s and is checked
+    here, before any task is sent (``MPCError`` as there). With ``measure`` (a plant with
+    a state of its own, e.g. the cat on SO(3) x SO(3)), ``x0s`` is the plant's state with
+    the members on axis 0 of every part, and the pushes, (time, function of the plant's
+    state) pairs, go to every chunk as they are. Each member's loop does not
     depend on the others (``closed_loop_batch`` runs them side by side), so the result
     equals the local ``closed_loop_batch`` of the same members (to round-off;
     tests/test_mpc.py checks it on a threads-only cluster, tests/test_distributed.py on
@@ -237,8 +240,9 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
 
     owner = "closed_loop_batch_on_client"
     plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, _ = _batch_inputs(
-        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner)
-    B = X.shape[0]
+        mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner,
+        measure)
+    B = jtu.tree_leaves(X)[0].shape[0]
     if chunk_members is None:
         workers = max(1, len(client.scheduler_info().get("workers", {})))
         chunk_members = -(-B // (2 * workers))
@@ -258,7 +262,8 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
     def chunk(a, i):
         return a[i * chunk_members:(i + 1) * chunk_members]
 
-    members = dict(X=padded(X), keys=padded(jax.device_get(key_data)), times=padded(push_t), kicks=padded(push_dx))
+    members = dict(X=jtu.tree_map(padded, X), keys=padded(jax.device_get(key_data)), times=padded(push_t),
+                   kicks=padded(push_dx))
     plant_arrays = None
     if plant_axis == 0:
         import equinox as eqx
@@ -266,15 +271,17 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
         arrays, static = eqx.partition(plant, eqx.is_array)
         plant_arrays = jtu.tree_map(padded, jax.device_get(arrays))
     shared = dict(in_axes=in_axes, t0=t0, u_guess=u_guess, force_noise=fsd, measurement_noise=msd,
-                  plant_substeps=plant_substeps, group=min(group, chunk_members))
+                  plant_substeps=plant_substeps, group=min(group, chunk_members), measure=measure)
     tag = uuid.uuid4().hex[:8]
     futures = []
     for i in range(n_chunks):
         part = plant if plant_arrays is None else eqx.combine(jtu.tree_map(lambda a: chunk(a, i), plant_arrays),
                                                                static)
+        per_member_pushes = (chunk(members["times"], i), chunk(members["kicks"], i))
         kwargs = dict(shared, keys=chunk(members["keys"], i),
-                      pushes=(chunk(members["times"], i), chunk(members["kicks"], i)))
-        futures.append(client.submit(_closed_loop_chunk, i, mpc, part, chunk(members["X"], i), periods, kwargs,
+                      pushes=pushes if measure is not None else per_member_pushes)
+        X_i = jtu.tree_map(lambda a: chunk(a, i), members["X"])
+        futures.append(client.submit(_closed_loop_chunk, i, mpc, part, X_i, periods, kwargs,
                                      on_chunk, key=f"controls-loops-{tag}-{i}", retries=int(retries), pure=False))
     bar = None
     if progress:

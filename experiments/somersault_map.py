@@ -6,11 +6,12 @@ velocity-controlled cat in Iwai's chart, x = (theta, chi, psi), starts bent at
 theta0 and returns to it after chi winds once (T = 2 s) while psi turns by ``turn``;
 least int I1 [(1 + B s^2) theta'^2 + lam s^2/D chi'^2] dt. Every member is solved by
 Pontryagin shooting, all at once (``controls.solve_pontryagin_batch``: one compiled
-program for the grid, run on both cores as two shares of the members), by continuation in the turn: each member starts from the
-fixed-theta loop's exact extremal (``fixed_theta_costates``), whose turn is the
-loop's holonomy -2 pi f(theta0), and walks to its own turn in ``--stages`` batched
-solves, each warm-started from the last, at rtol = atol = 1e-8 and a shooting
-tolerance of 1e-6, then polishes the final turn at ``solve_pontryagin``'s defaults
+program for the grid, run on both cores as two shares of the members), by
+continuation in the turn: each member starts from the fixed-theta loop's exact
+extremal (``fixed_theta_costates``), whose turn is the loop's holonomy
+-2 pi f(theta0), and walks to its own turn in ``--stages`` batched solves, each
+warm-started from the last, at rtol = atol = 1e-8 and a shooting tolerance of
+1e-6, then polishes the final turn at ``solve_pontryagin``'s defaults
 (rtol = atol = 1e-11, tol = 1e-10).
 
 Peer, in the same run (``--no-ipopt`` skips it; needs casadi, the ``peers`` extra,

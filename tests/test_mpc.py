@@ -14,6 +14,7 @@ a plant with a constant torque bias.
 """
 
 import functools
+import importlib.util
 import os
 import subprocess
 import sys
@@ -316,7 +317,8 @@ def test_plants_on_so3_are_measured_into_the_models_coordinates():
     interval), the cost and inputs with it, through a kick given as a map of each
     plant's state; the attitudes stay rotations. Without ``measure`` such plants are
     refused, and so are a push that is not a map of the plant's state, a measure of the
-    wrong size and starts whose parts disagree on the number of members."""
+    wrong size and starts whose parts disagree on the number of members. On a Dask
+    client (closed_loop_batch_on_client) the same batch gives the same loops."""
     mpc, _ = _regulator()
     att = CAT.attitude_model()
     starts = [dict(theta=0.6, chi=0.4, theta_dot=0.3, chi_dot=-0.5),  # off the target: the loop works
@@ -352,6 +354,19 @@ def test_plants_on_so3_are_measured_into_the_models_coordinates():
     for g in np.asarray(lie.trajectory.xs[0]), np.asarray(lie.trajectory.xs[1]):
         np.testing.assert_allclose(np.einsum("bkji,bkjl->bkil", g, g), np.broadcast_to(np.eye(3), g.shape),
                                    atol=1e-12)
+    # the same batch on a Dask client, one member per chunk: member by member the local batch
+    # (the pushes, maps of the plant's state, go to every chunk as they are)
+    if importlib.util.find_spec("distributed") is not None:
+        from dask.distributed import Client, LocalCluster
+
+        from controls.distributed import closed_loop_batch_on_client
+
+        with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            far = closed_loop_batch_on_client(client, mpc, att, Y0, 10, plant_substeps=4, measure=_chart_of_attitudes,
+                                              pushes=kick_lie, group=1, chunk_members=1)
+        for a, b in zip(jax.tree_util.tree_leaves(far), jax.tree_util.tree_leaves(lie)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-12)
     y0 = ys0[0]
     with pytest.raises(MPCError, match="measure="):
         closed_loop(mpc, att, y0, 3)
