@@ -395,11 +395,52 @@ def _shooting_root(shooting, z0, tol, max_steps, damped: bool, extremal: bool = 
         return (k == 0) | ((k <= max_steps) & going & ~small)
 
     m = shooting.residual_size  # (not by eval_shape: that would trace the shooting's solves once more)
+    if not damped and not extremal:
+        return _newton_root(values_and_jacobian, z0, m, tol, max_steps)
     # (r, J) before the first evaluation: any finite values (its step is masked out)
     start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), aux0, jnp.asarray(_LM_MU0), jnp.asarray(2.0),
              jnp.zeros((), bool), jnp.ones((), bool))
     k, z, r, _, aux, *_ = jax.lax.while_loop(cond, body, start)
     return z, r, k - 1, aux
+
+
+def _newton_root(values_and_jacobian, z0, m, tol, max_steps):
+    """``_shooting_root``'s Newton iteration for a caller that evaluates the residual at
+    the answer itself (``extremal=False``): the same iterates, stops and step count, but
+    the last step, one whose size already meets the tolerance, is taken without
+    evaluating r and its Jacobian at its end (that evaluation, a solve of the
+    variational equations, only confirmed the stop: Newton accepts every finite trial).
+    Each iteration evaluates at its point, then proposes the next step. Returns (z, r at
+    the last point evaluated, steps, ())."""
+    n = z0.shape[0]
+
+    def body(c):
+        k, z, r, jac, dz, _, _ = c
+        first = k == 0
+        z_try = jnp.where(first, z0, z + dz)
+        r_try, jac_try, _ = values_and_jacobian(z_try)
+        ok = jnp.all(jnp.isfinite(r_try)) & jnp.all(jnp.isfinite(jac_try))
+        accept = first | ok
+        r_prev = r
+        z, r, jac = (jnp.where(accept, a, b) for a, b in ((z_try, z), (r_try, r), (jac_try, jac)))
+        # the residual's floor (as in _shooting_root), judged at this point
+        r_max, r_was = jnp.max(jnp.abs(r)), jnp.max(jnp.abs(jnp.where(accept, r_prev, jnp.inf)))
+        floor = accept & ~first & (r_max <= tol) & (r_max > 0.1 * r_was)
+        going = ok & jnp.all(jnp.isfinite(r))
+        # the next step; one within tolerance (and within the budget) is the last
+        dz = -small_solve(jac, r)
+        last = going & ~floor & (k + 1 <= max_steps) \
+            & (jnp.max(jnp.abs(dz)) <= tol * (1.0 + jnp.max(jnp.abs(z + dz))))
+        return k + 1, z, r, jac, dz, floor | last | ~going, last
+
+    def cond(c):
+        k, *_, stop, _ = c
+        return (k == 0) | ((k <= max_steps) & ~stop)
+
+    start = (jnp.zeros((), int), z0, jnp.zeros(m), jnp.eye(m, n), jnp.zeros(n), jnp.zeros((), bool),
+             jnp.zeros((), bool))
+    k, z, r, _, dz, _, last = jax.lax.while_loop(cond, body, start)
+    return jnp.where(last, z + dz, z), r, k - 1 + last.astype(k.dtype), ()
 
 
 @compiled
