@@ -393,14 +393,14 @@ def solve_pontryagin_batch(
     stacked, z0, finite = _screen(stacked, z0, owner)
     bar = Progress(progress, 1, f"Pontryagin batch of {B} ({'Newton' if solver == 'newton' else 'Levenberg-Marquardt'})")
     options = (*_root_options(tol, max_steps, solver), lanes)
-    members = jtu.tree_map(lambda a: np.asarray(a) if eqx.is_array(a) else a, stacked)  # (every array: B rows)
+
+    def args_of(part):
+        problems, z0 = part
+        return (sh, jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, problems), z0, *options)
 
     def run(z0):
-        def args_of(idx):
-            pick = jtu.tree_map(lambda a: jnp.asarray(a[idx]) if isinstance(a, np.ndarray) else a, members)
-            return (sh, pick, z0[idx], *options)
-
-        z, res, steps, traj, us, cost, viol = run_in_shares(_indirect_batch, args_of, B, workers, lanes)
+        # (every array of the stack has the members on axis 0)
+        z, res, steps, traj, us, cost, viol = run_in_shares(_indirect_batch, args_of, (stacked, z0), B, workers, lanes)
         out = [np.array(a, float) for a in (z, res, cost, viol, traj.xs, traj.ts, us)]
         return [*out, np.array(steps)]
 

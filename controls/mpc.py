@@ -1336,15 +1336,15 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
         mpc = _with_qp(mpc, "riccati")
     per_member = (plant if plant_axis == 0 else None, X, key_data, push_t, push_dx)
 
-    def args_of(idx):
-        """The program's arguments for members ``idx`` (host-side numpy indexing)."""
-        take = lambda v: np.asarray(v)[idx] if hasattr(v, "shape") and np.ndim(v) else v  # noqa: E731
-        pl, x, kd, pt, pdx = (None if a is None else jtu.tree_map(take, a) for a in per_member)
+    def args_of(part):
+        """The program's arguments for some of the members (``per_member`` at them)."""
+        pl, x, kd, pt, pdx = part
         return (mpc, plant if pl is None else pl, plant_axis, jtu.tree_map(jnp.asarray, x), plan0.u, t0a, kd,
                 jnp.asarray(pt), jnp.asarray(pdx), jnp.asarray(fsd), jnp.asarray(msd), periods, plant_substeps,
                 group, measure, push_fns)
 
     # whole groups in equal shares (one program for all), run at once in threads
-    out = jtu.tree_map(jnp.asarray, run_in_shares(_batch_program, args_of, B, workers, group, "nhjax-mpc"))
+    out = jtu.tree_map(jnp.asarray, run_in_shares(_batch_program, args_of, per_member, B, workers, group,
+                                                  "nhjax-mpc"))
     xs, ys, us, status, J, drift = out
     return _result(mpc, plant, t0a, xs, ys, us, status, J, drift, periods)

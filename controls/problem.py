@@ -178,24 +178,29 @@ def batch_workers(workers, B, unit, owner):
     return max(1, min(workers, -(-B // unit)))
 
 
-def run_in_shares(program, args_of, B, workers, unit, name="nhjax-batch"):
-    """``program(*args_of(idx))`` over B members cut into ``workers`` equal shares of
-    whole units (the members ``idx`` of each share; past B, copies of the share's first
-    member), run at once in threads of this process, each result copied to the host and
-    the shares joined in member order (the padding dropped): one compiled program (the
-    shares have one shape) that XLA runs on both cores, releasing the GIL. With one
-    worker: ``program(*args_of(arange(B)))`` as it is. ``program`` is a ``compiled``
-    function (its ``prepare`` traces it once before the threads start)."""
+def run_in_shares(program, args_of, members, B, workers, unit, name="nhjax-batch"):
+    """``program(*args_of(part))`` over B members cut into ``workers`` equal shares of
+    whole units, ``part`` being ``members`` (a pytree whose array leaves carry the member
+    axis first; other leaves are shared) at the share's members (host-side numpy
+    indexing; past B, copies of the share's first member). The shares run at once in
+    threads of this process, each result copied to the host, and are joined in member
+    order (the padding dropped): one compiled program (the shares have one shape) that
+    XLA runs on both cores, releasing the GIL. With one worker: ``program(*args_of(part))``
+    on all members, as it is. ``program`` is a ``compiled`` function (its ``prepare``
+    traces it once before the threads start)."""
+
+    def part(idx):
+        return jtu.tree_map(lambda a: np.asarray(a)[idx] if hasattr(a, "shape") and np.ndim(a) else a, members)
+
     if workers == 1:
-        return program(*args_of(np.arange(B)))
+        return program(*args_of(part(np.arange(B))))
     share = -(-(-(-B // unit)) // workers) * unit
-    starts = list(range(0, B, share))
     args = []
-    for lo in starts:
+    for lo in range(0, B, share):
         idx = np.arange(lo, lo + share)
-        args.append(args_of(np.where(idx < B, idx, lo)))
+        args.append(args_of(part(np.where(idx < B, idx, lo))))
     program.prepare(*args[0])  # traced here once; the threads wait for its compile
-    with concurrent.futures.ThreadPoolExecutor(len(starts), thread_name_prefix=name) as pool:
+    with concurrent.futures.ThreadPoolExecutor(len(args), thread_name_prefix=name) as pool:
         parts = list(pool.map(lambda a: jax.device_get(program(*a)), args))
     return jtu.tree_map(lambda *a: np.concatenate(a)[:B], *parts)
 

@@ -122,7 +122,7 @@ def ipopt_map(bends, turns, N=40):
 def ipopt_grids(bends, turns, ours, converged, accuracy=EQUAL_ACCURACY, largest=400):
     """IPOPT's map on grids of N = 40, 80, then the N its convergence order predicts for a
     largest relative cost difference from ours of ``accuracy`` (rounded up to a multiple
-    of 20; 40 more while it misses, up to ``largest``): one row per grid (N, seconds,
+    of 20, at least 100; 40 more while it misses, up to ``largest``): one row per grid (N, seconds,
     build seconds, successes, largest and median relative difference over the members
     both solved). Its cost converges to the continuous optimum that our shooting meets
     (to ~1e-11) as the grid is refined, at about the fourth order in N (RK4; more RK4
