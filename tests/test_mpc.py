@@ -137,14 +137,22 @@ def test_shrinking_loop_reproduces_the_open_loop_optimum(kind):
     if kind.startswith("terminal penalty"):  # J + w |psi|^2, no constraints left
         plain = run
         run = lambda v: (plain(v)[0] + 100.0 * jnp.sum(plain(v)[1] ** 2), jnp.zeros(0))  # noqa: E731
-    J, psi = jax.jit(run)(jnp.asarray(u))
-    g = np.asarray(jax.grad(lambda v: run(v)[0])(jnp.asarray(u))).ravel()
+    def values(v):
+        J, psi = run(v)
+        y = jnp.concatenate([J[None], psi])
+        return y, y
+
+    # one forward-mode program gives J, psi, dJ/du and dpsi/du (three programs cost the
+    # default run ~8 s more of compiling)
+    D, y = jax.jit(jax.jacfwd(values, has_aux=True))(jnp.asarray(u))
+    J, psi, D = y[0], y[1:], np.asarray(D).reshape(y.shape[0], -1)
+    g = D[0]
     assert abs(float(J) - float(status.cost)) < 1e-12 * max(1.0, abs(float(J)))
     if kind != "terminal constraint, bounds active":
         assert np.abs(g).max() < 1e-8 * max(1.0, float(J))
     else:
         assert np.abs(np.asarray(psi)).max() < 1e-9
-        A = np.asarray(jax.jacfwd(lambda v: run(v)[1])(jnp.asarray(u))).reshape(len(psi), -1)
+        A = D[1:]
         at_lo, at_hi = u.ravel() <= -bound + 1e-7, u.ravel() >= bound - 1e-7
         assert (at_lo | at_hi).sum() >= 2, "the test wants the bounds active somewhere"
         free = ~(at_lo | at_hi)
@@ -411,6 +419,8 @@ def _mark(folder, index):
     (Path(folder) / f"chunk-{index}").touch()
 
 
+@pytest.mark.slow(reason="starts a Dask cluster and compiles the batch program twice (~13 s); the default run's "
+                         "test_batch_member_is_the_loop_run_alone checks the local batch; make test-all")
 def test_batch_on_a_dask_client_is_the_local_batch_member_by_member(tmp_path):
     """closed_loop_batch_on_client on a threads-only LocalCluster: five members (the
     three of the batch test, two of them twice) in chunks of three, the last chunk

@@ -310,6 +310,8 @@ def test_eager_checks_raise_before_the_solve_runs_and_the_projected_start_is_sol
     assert float(tr.constraint_drift["position"]) < 1e-12
 
 
+@pytest.mark.slow(reason="compiles simulate's stages again as plain jitted programs (~10 s); the default "
+                         "run checks the cache's route (test_first_answers, test_programs); make test-all")
 def test_with_the_program_cache_off_gradients_and_checks_take_the_same_route(monkeypatch):
     """NHJAX_PROGRAM_CACHE=0: simulate() runs the same stages with plain jitted programs.
     A NaN start raises the named error before any solve; ``jax.grad`` of a final
