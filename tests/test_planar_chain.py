@@ -313,3 +313,64 @@ def test_reduction_helpers_name_bad_arguments(zero_momentum_chain, open_ellipse)
     np.testing.assert_allclose(loose, closed, rtol=1e-5)
     assert abs(float(closed[0])) > 0.01
 
+
+
+class PathRate(eqx.Module):
+    """The joint rates phi' of controls.tasks.chain_loop_path's circle (its quintic time
+    law), as the kinematic chain's input."""
+
+    phi0: jax.Array
+    radius: jax.Array
+    orientation: int = eqx.field(static=True)
+    T: float = eqx.field(static=True)
+
+    def __call__(self, t, x):
+        from controls.tasks import chain_loop_path
+
+        return chain_loop_path(self.phi0, self.radius, (1.0, 1.0), self.orientation, self.T)(t)[1]
+
+
+def test_radius_for_turn_sizes_a_loop_that_turns_the_chain_by_the_request():
+    """controls.tasks.chain_radius_for_turn (one stored program: the secant method on the
+    curvature integral) for both signs of the turn: the kinematic chain driven once around
+    the circle of that radius turns by the request to the integration tolerance and its
+    joints come back (Stokes: exact for the abelian SO(2) connection); the circle's
+    curvature integral, evaluated apart, is the request to 1e-10; a turn that even the
+    largest circle cannot give is refused."""
+    from controls import ProblemError
+    from controls.tasks import chain_loop_turn, chain_radius_for_turn
+
+    chain, phi0, T = PlanarChain(group="SO2"), jnp.array([0.5, 0.5]), 3.0
+    kin = chain.kinematic()
+    x0 = kin.initial_state(phi0)
+    for turn in (0.2, -0.35):
+        radius, orientation = chain_radius_for_turn(chain, turn, phi0)
+        assert 0.1 < radius < 2.0
+        assert abs(chain_loop_turn(chain, phi0, radius, orientation=orientation) - turn) < 1e-10
+        tr = nhjax.simulate(kin, x0, T, control=PathRate(phi0, jnp.asarray(radius), orientation, T), rtol=1e-12,
+                            atol=1e-12, saveat=2, diagnostics=False)
+        np.testing.assert_allclose(tr.xs[-1, 1:], x0[1:], rtol=0, atol=1e-9)  # the joints are back
+        assert abs(float(tr.xs[-1, 0] - x0[0]) - turn) < 1e-8
+    with pytest.raises(ProblemError, match="turns the chain by only"):
+        chain_radius_for_turn(chain, 10.0, phi0)
+
+
+def test_loop_guess_torques_drive_the_chain_around_its_loop():
+    """controls.tasks.chain_loop_guess (the computed torques of the loop, sampled by one
+    stored program, fitted to Chebyshev(30) torques): the dynamic chain under the fitted
+    torques, from rest, follows the loop's joint angles to 1e-2 rad and ends turned by the
+    loop's turn to 1e-3 rad (the fit's error: wrong inverse dynamics would miss by
+    order one)."""
+    import controls
+    from controls.tasks import chain_loop_guess, chain_loop_path, chain_radius_for_turn
+
+    chain, phi0, T, turn = PlanarChain(group="SO2"), jnp.array([0.5, 0.5]), 3.0, 0.2
+    radius, orientation = chain_radius_for_turn(chain, turn, phi0)
+    param = controls.Chebyshev(30, T, 2)
+    z = chain_loop_guess(chain, param, phi0, T, radius, orientation=orientation)
+    tr = nhjax.simulate(chain, chain.initial_state(phi0), T, control=param.signal(z), rtol=1e-10, atol=1e-10,
+                        saveat=13)
+    path = chain_loop_path(phi0, radius, (1.0, 1.0), orientation, T)
+    ref = np.stack([np.asarray(path(t)[0]) for t in np.asarray(tr.ts)])
+    assert np.abs(np.asarray(tr.xs[:, 1:3]) - ref).max() < 1e-2
+    assert abs(float(tr.xs[-1, 0]) - turn) < 1e-3

@@ -20,10 +20,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from nhjax import _programs
 from nhjax import _validate as V
 from nhjax.mechanics.reduction import EllipseLoop, curvature_integral
 from nhjax.scenes.planar_chain import PlanarChain
 
+from ..parametrize import fit_samples
 from ..problem import OCP, ProblemError
 from .somersault import Effort, TerminalTarget
 
@@ -97,40 +99,75 @@ def loop_path(phi0, radius, direction, orientation, T):
     return derivs
 
 
+def _unit(direction):
+    d = np.asarray(direction, float)
+    return d / np.linalg.norm(d)
+
+
+def _turn_of(chain, phi0, radius, d, orientation, n=32):
+    """``loop_turn`` as a traceable function of its numbers (d a unit vector)."""
+    c = phi0[:2] + radius * d
+    return -orientation * curvature_integral(chain.kinematic(), EllipseLoop(c, radius), c, base=phi0, n=n)[0]
+
+
 def loop_turn(chain: PlanarChain, phi0, radius, direction=(1.0, 1.0), orientation=1, n=32):
     """The turn [rad] of the loop of ``loop_path``: -(orientation) x the curvature
     integral over the enclosed disk (exact: the SO(2) connection is abelian)."""
-    phi0 = jnp.asarray(phi0, float)
-    d = jnp.asarray(direction, float) / jnp.linalg.norm(jnp.asarray(direction, float))
-    c = phi0[:2] + radius * d
-    kin = chain.kinematic()
-    return -orientation * float(curvature_integral(kin, EllipseLoop(c, radius), c, base=phi0, n=n)[0])
+    return float(_turn_of(chain, jnp.asarray(phi0, float), radius, jnp.asarray(_unit(direction)), orientation, n=n))
+
+
+#: Secant steps of ``radius_for_turn``: from r_max sqrt(|turn| / |turn(r_max)|) (exact
+#: for a turn proportional to the enclosed area) they reach the radius to rounding in
+#: about six.
+SECANT_STEPS = 10
+
+
+def _solve_radius(chain, phi0, d, turn, r_max):
+    """(turn of the r_max circle, the radius whose circle turns the chain by |turn|): the
+    secant method on |turn(r)| - |turn|, kept in (0, r_max]. One program for the whole
+    search (one curvature integral per step: smaller to compile than Newton's
+    derivatives of it)."""
+    full = _turn_of(chain, phi0, r_max, d, 1.0)
+    target = jnp.abs(turn)
+
+    def miss(r):
+        return jnp.abs(_turn_of(chain, phi0, r, d, 1.0)) - target
+
+    def secant(_, state):
+        r0, f0, r1, f1 = state
+        df = f1 - f0
+        r2 = jnp.where(df != 0.0, r1 - f1 * (r1 - r0) / jnp.where(df != 0.0, df, 1.0), r1)
+        r2 = jnp.clip(r2, 1e-6 * r_max, r_max)
+        return r1, f1, r2, miss(r2)
+
+    r0 = r_max * jnp.sqrt(jnp.clip(target / jnp.abs(full), 1e-12, 1.0))
+    r1 = 0.9 * r0
+    _, _, r, _ = jax.lax.fori_loop(0, SECANT_STEPS, secant, (r0, miss(r0), r1, miss(r1)))
+    return full, r
 
 
 def radius_for_turn(chain: PlanarChain, turn, phi0, direction=(1.0, 1.0), r_max=2.0):
-    """(radius, orientation) of a ``loop_path`` circle whose turn is ``turn``, by
-    bisection on the radius in (0, r_max] (raises if even r_max turns too little)."""
-    full = loop_turn(chain, phi0, r_max, direction, 1)
+    """(radius, orientation) of a ``loop_path`` circle whose turn is ``turn``: the
+    secant method on the radius in (0, r_max] (raises if even r_max turns too little). The search runs as
+    one stored program (``nhjax._programs.call``): in a notebook's new process it is
+    loaded, neither traced nor compiled again."""
+    owner = "radius_for_turn"
+    turn = float(V.real("turn", turn, owner=owner, shape=(), what="turn of the chain [rad]"))
+    r_max = float(V.positive("r_max", r_max, owner=owner, shape=(), what="largest loop radius [rad]"))
+    args = (chain, jnp.asarray(phi0, float), jnp.asarray(_unit(direction)), jnp.asarray(turn), jnp.asarray(r_max))
+    full, radius = (float(a) for a in _programs.call("controls.tasks.radius_for_turn", _solve_radius, args,
+                                                                    compiler_options=_programs.QUICK_OPTIONS))
     if abs(full) < abs(turn):
         raise ProblemError(
             f"radius_for_turn: a circular joint loop of radius {r_max} rad from phi0 turns the chain by only "
             f"{abs(full):.3g} rad < |turn| = {abs(turn):.3g}: ask for less, or start elsewhere"
         )
-    orientation = 1 if np.sign(full) == np.sign(turn) else -1
-    lo, hi = 0.0, r_max
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if abs(loop_turn(chain, phi0, mid, direction, 1)) < abs(turn):
-            lo = mid
-        else:
-            hi = mid
-    return 0.5 * (lo + hi), orientation
+    return radius, 1 if np.sign(full) == np.sign(turn) else -1
 
 
-def loop_guess(chain: PlanarChain, param, phi0, T, radius, direction=(1.0, 1.0), orientation=1):
-    """Parameters of ``param`` fitted to the joint torques that drive the chain around
-    the ``loop_path`` circle (computed torque: the inverse of the reduced equations)."""
-    path = loop_path(phi0, radius, direction, orientation, T)
+def _loop_torques(chain, phi0, radius, d, orientation, T, ts):
+    """The computed torques (inverse reduced dynamics) along the ``loop_path`` circle at ts."""
+    path = loop_path(phi0, radius, d, orientation, T)
     ng = chain.n_group
 
     def u(t):
@@ -138,5 +175,15 @@ def loop_guess(chain: PlanarChain, param, phi0, T, radius, direction=(1.0, 1.0),
         x = chain.join(None, jnp.zeros(ng), q, v, None if chain.momentum == "zero" else jnp.zeros(chain.symmetry.dim))
         return chain.inverse_dynamics(x, a)
 
-    return param.fit(jax.jit(u))
+    return jax.vmap(u)(ts)
+
+
+def loop_guess(chain: PlanarChain, param, phi0, T, radius, direction=(1.0, 1.0), orientation=1):
+    """Parameters of ``param`` fitted to the joint torques that drive the chain around
+    the ``loop_path`` circle (computed torque: the inverse of the reduced equations),
+    sampled at ``param.sample_times()`` by one stored program."""
+    ts = param.sample_times()
+    us = _programs.small_call("controls.tasks.loop_guess", _loop_torques, chain, jnp.asarray(phi0, float), radius,
+                              _unit(direction), float(orientation), float(T), ts)
+    return fit_samples(param, ts, us)
 
