@@ -280,13 +280,14 @@ def torque_loop_guess(cat: FallingCat, param, theta0, T, windings=1):
     chi'(t) = c (1 - cos(2 pi t / T)), c = 2 pi windings / T: u1 balances the
     centrifugal term, u2 = 2 I1 lam s^2 / D chi''. A rest-to-rest motion that
     turns psi by -2 pi windings f(theta0): a start for the torque somersault."""
+    # sampled in numpy (as loop_guess): eager jax operations would each be a program to
+    # lower in a new process
+    theta0, T = float(theta0), float(T)
     s, co = np.sin(theta0), np.cos(theta0)
     D = float(cat.D(theta0))
     I1, lam = float(cat.I1), float(cat.lam)
     c, w = 2 * np.pi * windings / T, 2 * np.pi / T
-
-    def u(t):
-        chid, chidd = c * (1 - jnp.cos(w * t)), c * w * jnp.sin(w * t)
-        return jnp.stack([-2 * I1 * lam**2 * s * co / D**2 * chid**2, 2 * I1 * lam * s**2 / D * chidd])
-
-    return param.fit(u)
+    ts = param.sample_times()
+    chid, chidd = c * (1 - np.cos(w * ts)), c * w * np.sin(w * ts)
+    us = np.stack([-2 * I1 * lam**2 * s * co / D**2 * chid**2, 2 * I1 * lam * s**2 / D * chidd], axis=1)
+    return fit_samples(param, ts, us)
