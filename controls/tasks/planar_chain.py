@@ -118,15 +118,14 @@ def loop_turn(chain: PlanarChain, phi0, radius, direction=(1.0, 1.0), orientatio
 
 #: Secant steps of ``radius_for_turn``: from r_max sqrt(|turn| / |turn(r_max)|) (exact
 #: for a turn proportional to the enclosed area) they reach the radius to rounding in
-#: about six.
+#: seven to nine on the 3-link chain (turns 0.02 to 0.6 rad).
 SECANT_STEPS = 10
 
 
 def _solve_radius(chain, phi0, d, turn, r_max):
-    """(turn of the r_max circle, the radius whose circle turns the chain by |turn|): the
-    secant method on |turn(r)| - |turn|, kept in (0, r_max]. One program for the whole
-    search (one curvature integral per step: smaller to compile than Newton's
-    derivatives of it)."""
+    """(turn of the r_max circle, the radius whose circle turns the chain by |turn|, and
+    |turn(radius)| - |turn|): the secant method, kept in (0, r_max], one curvature
+    integral per step. One program for the whole search."""
     full = _turn_of(chain, phi0, r_max, d, 1.0)
     target = jnp.abs(turn)
 
@@ -142,26 +141,31 @@ def _solve_radius(chain, phi0, d, turn, r_max):
 
     r0 = r_max * jnp.sqrt(jnp.clip(target / jnp.abs(full), 1e-12, 1.0))
     r1 = 0.9 * r0
-    _, _, r, _ = jax.lax.fori_loop(0, SECANT_STEPS, secant, (r0, miss(r0), r1, miss(r1)))
-    return full, r
+    _, _, r, f = jax.lax.fori_loop(0, SECANT_STEPS, secant, (r0, miss(r0), r1, miss(r1)))
+    return full, r, f
 
 
 def radius_for_turn(chain: PlanarChain, turn, phi0, direction=(1.0, 1.0), r_max=2.0):
     """(radius, orientation) of a ``loop_path`` circle whose turn is ``turn``: the
-    secant method on the radius in (0, r_max] (raises if even r_max turns too little). The search runs as
+    secant method on the radius in (0, r_max] (raises if even r_max turns too little, or
+    if the search ends more than 1e-10 relative from the turn). The search runs as
     one stored program (``nhjax._programs.call``): in a notebook's new process it is
     loaded, neither traced nor compiled again."""
     owner = "radius_for_turn"
     turn = float(V.real("turn", turn, owner=owner, shape=(), what="turn of the chain [rad]"))
     r_max = float(V.positive("r_max", r_max, owner=owner, shape=(), what="largest loop radius [rad]"))
     args = (chain, jnp.asarray(phi0, float), jnp.asarray(_unit(direction)), jnp.asarray(turn), jnp.asarray(r_max))
-    full, radius = (float(a) for a in _programs.call("controls.tasks.radius_for_turn", _solve_radius, args,
-                                                                    compiler_options=_programs.QUICK_OPTIONS))
+    full, radius, miss = (float(a) for a in _programs.call("controls.tasks.radius_for_turn", _solve_radius, args,
+                                                           compiler_options=_programs.QUICK_OPTIONS))
     if abs(full) < abs(turn):
         raise ProblemError(
             f"radius_for_turn: a circular joint loop of radius {r_max} rad from phi0 turns the chain by only "
             f"{abs(full):.3g} rad < |turn| = {abs(turn):.3g}: ask for less, or start elsewhere"
         )
+    # (a turn below what the smallest circle, 1e-6 r_max, gives ends there: no miss to judge)
+    if radius > 1e-6 * r_max and not abs(miss) <= 1e-10 * max(abs(turn), 1e-3):
+        raise ProblemError(f"radius_for_turn: the secant search for the radius stopped {abs(miss):.2e} rad from "
+                           f"the turn {turn:.6g} after {SECANT_STEPS} steps")
     return radius, 1 if np.sign(full) == np.sign(turn) else -1
 
 
