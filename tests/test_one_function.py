@@ -98,3 +98,30 @@ def test_forward_mode_adjoints_are_not_wrapped():
     h = 1e-6
     fd = [(final_psi(a.at[i].add(h)) - final_psi(a.at[i].add(-h))) / (2 * h) for i in range(2)]
     np.testing.assert_allclose(J, fd, rtol=1e-6)
+
+
+def test_a_solve_differentiated_inside_a_stored_trace_is_traced_once(monkeypatch):
+    """Inside a stored program's trace (the optimal-control solvers' Jacobians and
+    Hessians are such programs), a solve under jax.grad is traced once: its discrete
+    adjoint's forward pass; no primal trace before it (a nested jit, the one-function
+    wrapper) and no shape-only trace in its backward pass for the saved states the loss
+    does not read. The gradient is central differences'."""
+    from nhjax import _programs
+
+    x0 = jnp.asarray(CAT.initial_state(1.0, chi_dot=0.3))
+
+    def loss(a):
+        ctrl = nhjax.Sinusoids(jnp.zeros(2), a, jnp.array([2.0, 3.0]), jnp.array([0.0, np.pi / 2]))
+        return nhjax.simulate(CAT, x0, 2.0, control=ctrl, rtol=1e-10, atol=1e-10, saveat=5,
+                              adjoint=nhjax.DiscreteAdjoint()).xs[-1, 2]
+
+    solves = []
+    plain = diffrax.diffeqsolve
+    monkeypatch.setattr(diffrax, "diffeqsolve", lambda *a, **k: solves.append(1) or plain(*a, **k))
+    a = jnp.array([0.3, 0.2])
+    with _programs.stored_trace():
+        g = jax.jit(jax.grad(loss))(a)
+    assert len(solves) == 1
+    h = 1e-6
+    fd = [(loss(a.at[i].add(h)) - loss(a.at[i].add(-h))) / (2 * h) for i in range(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6)

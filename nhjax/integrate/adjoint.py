@@ -196,7 +196,9 @@ def _discrete_solve_fwd(perturbed, diff, problem, adjoint):
             mode = "vjp"
     y0, args = diff
     out, steps = problem.run(y0, args, record=True)
-    return out, (mode, (steps, out["t_final"]))
+    # the saved outputs' shapes (static), for the cotangents of those no loss reads
+    ys_like = jtu.tree_map(lambda a: jax.ShapeDtypeStruct(a.shape, a.dtype), out["ys"])
+    return out, (mode, (steps, out["t_final"], ys_like))
 
 
 def _mode(adjoint: DiscreteAdjoint, diff, perturbed) -> str:
@@ -263,7 +265,7 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
     mode, residuals = residuals
     if mode == "tangents":
         return _tangent_backward(residuals, grad_out, perturbed, diff)
-    (ts_rec, ys_rec), t_final = residuals
+    (ts_rec, ys_rec), t_final, ys_like = residuals
     y0, args = diff
     # Only the perturbed parameters get cotangents: fewer directions for the step Jacobians.
     dyn = eqx.filter(args, perturbed[1])
@@ -313,7 +315,7 @@ def _discrete_solve_bwd(residuals, grad_out, perturbed, diff, problem, adjoint):
     ct_p = jnp.zeros_like(p_flat)
     g_ys = grad_out["ys"]  # None when no saved output is differentiated
     if g_ys is not None and any(g is None for g in jtu.tree_leaves(g_ys, is_leaf=lambda x: x is None)):
-        g_ys = _zeros_if_none(g_ys, eqx.filter_eval_shape(lambda: problem.run(y0, args, False)[0]["ys"]))
+        g_ys = _zeros_if_none(g_ys, ys_like)  # (shapes from the forward pass: no solve traced again)
     ends_only = sub.ts is None
     A_k = A_v = None  # saved outputs inside steps: step index and cotangent on y_k
     if g_ys is not None and ends_only:  # saved outputs are fn(t0, y_0) and fn(t_final, y_M)

@@ -38,7 +38,7 @@ import numpy as np
 from jax import lax
 from jax.custom_derivatives import SymbolicZero
 
-__all__ = ["as_one_function"]
+__all__ = ["as_one_function", "under_differentiation"]
 
 #: Substrings of the names of host-callback primitives (pure_callback, io_callback,
 #: debug_callback, debug_print).
@@ -70,6 +70,25 @@ def _zero(s):
     if jnp.issubdtype(s.dtype, jnp.inexact):
         return jnp.zeros(s.shape, s.dtype)
     return np.zeros(s.shape, jax.dtypes.float0)
+
+
+def under_differentiation(*trees) -> bool:
+    """Whether a leaf of ``trees`` is a tracer of ``jax.jvp``, ``jax.vjp``, ``jax.grad``
+    or ``jax.linearize`` (the outermost transformation at this point differentiates):
+    then a solve gains nothing from ``as_one_function`` (its custom VJP's forward pass
+    runs the unwrapped program, and forward mode does not pass through it), and
+    wrapping it costs one more trace of the whole program (on the spherical robot's
+    reverse pass about a quarter of the trace)."""
+    return any(isinstance(x, _DIFF_TRACERS) for x in jtu.tree_leaves(trees))
+
+
+try:  # JAX's tracer types of forward mode and of linearization (reverse mode)
+    from jax._src.interpreters.ad import JVPTracer as _JVP
+    from jax._src.interpreters.ad import LinearizeTracer as _LIN
+
+    _DIFF_TRACERS: tuple = (_JVP, _LIN)
+except ImportError:  # another JAX: always wrap, as before
+    _DIFF_TRACERS = ()
 
 
 def as_one_function(fn, *args):

@@ -60,7 +60,7 @@ from ..errors import (
 from ..lie.spaces import Euclidean, is_space
 from ..mechanics.system import AbstractSystem
 from .adjoint import DiscreteAdjoint, _Problem, _save_state, discrete_solve
-from .one_function import as_one_function
+from .one_function import as_one_function, under_differentiation
 from .progress import SimulatedTimeMeter
 from .projection import ProjectedSolver
 from .rkmk import LieODETerm, RKMK45, _AbstractRKMK
@@ -789,6 +789,11 @@ def _run(call: _Call, plan: _Plan) -> Trajectory:
     if call.traced:
         x0 = checked()
         if plan.inline:
+            if under_differentiation(solve_args(x0)):
+                # differentiated in an outer trace: traced here, once. A nested jit would
+                # trace the primal solve first and then linearize it; the one-function
+                # wrapper would trace it once more (see one_function)
+                return _solve_impl(*solve_args(x0), dataclasses.replace(static, one_function=False), plan.show)
             return _solve(*solve_args(x0), static, plan.show)
         # the stored programs, inlined by XLA (nothing of the solve is traced)
         return diagnosed(cached(x0), x0)
