@@ -424,7 +424,9 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             gr = Z.T @ (g + A.T @ lam)
             d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
             slope = (g + A.T @ lam) @ d
-            alpha, accepted = 1.0, False
+            # a search starts at twice the last accepted step (a full step after a full
+            # one): after a short step the full one failed again in the next iteration
+            alpha, accepted = min(1.0, 2.0 * alpha) if it > 1 else 1.0, False
             for _ in range(20):
                 z_t = z + alpha * d
                 y_t = _values(sh, z_t)
