@@ -24,7 +24,9 @@ steps:
   restoration; the step is halved until the restored cost decreases (Armijo).
 
 Far from the optimum the iterates need not be exact, so the simulations first
-run at ``loose_tol`` (1e-6, unless the requested tolerances are looser) until the
+run at ``loose_tol`` (1e-6, unless the requested tolerances are looser), and the line
+search's restorations there stop at max(ctol, loose_tol) (below it they would meet the
+loose simulations' noise: fresh Jacobians and failed trials for nothing), until the
 relative stationarity falls below ``LOOSE_UNTIL`` (or a line search fails
 there); then the iterate is restored at the requested tolerances and the
 iteration goes on there. The tolerances are arguments of the compiled programs,
@@ -329,7 +331,8 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
       Hessian of int |u|^2 dt): secant updates of A (forward solves only; a fresh
       Jacobian where they converge slowly), then Gauss-Newton if needed; the step is
       halved until the restored cost decreases (Armijo).
-    The first iterations simulate at rtol = atol = ``loose_tol`` until the
+    The first iterations simulate at rtol = atol = ``loose_tol`` (and restore to
+    max(ctol, loose_tol)) until the
     stationarity falls below ``LOOSE_UNTIL`` (1e-3) or a line search fails there;
     from there on, and for the answer and its convergence test, at ``rtol``,
     ``atol`` (``history["rtol"]`` says which, per iteration).
@@ -432,8 +435,10 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                 y_t = _values(sh, z_t)
                 if np.all(np.isfinite(y_t)):
                     # second-order correction with A(z) (the step lies in its null space)
-                    z_t, y_t, D_t, ok = _restore(sh, z_t, y_t, A, Q, Qi, ctol, gn_iter=6,
-                                                        contraction=CONTRACTION)
+                    # (the loose simulations' constraints are met to about their own
+                    # accuracy: restoring further only meets their noise)
+                    z_t, y_t, D_t, ok = _restore(sh, z_t, y_t, A, Q, Qi, max(ctol, loose_tol) if loose else ctol,
+                                                 gn_iter=6, contraction=CONTRACTION)
                     if ok and y_t[0] <= y[0] + 1e-4 * alpha * slope + 1e-14 * abs(y[0]):
                         accepted = True
                         break
