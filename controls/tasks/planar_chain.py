@@ -125,23 +125,28 @@ SECANT_STEPS = 10
 def _solve_radius(chain, phi0, d, turn, r_max):
     """(turn of the r_max circle, the radius whose circle turns the chain by |turn|, and
     |turn(radius)| - |turn|): the secant method, kept in (0, r_max], one curvature
-    integral per step. One program for the whole search."""
-    full = _turn_of(chain, phi0, r_max, d, 1.0)
+    integral per step. One program for the whole search, with one copy of the curvature
+    integral in it: a loop whose first three trips evaluate the r_max circle and the two
+    starting radii, the others the secant steps (four copies compiled four times over)."""
     target = jnp.abs(turn)
 
-    def miss(r):
-        return jnp.abs(_turn_of(chain, phi0, r, d, 1.0)) - target
-
-    def secant(_, state):
-        r0, f0, r1, f1 = state
+    def trip(k, state):
+        full, r0, f0, r1, f1 = state
         df = f1 - f0
-        r2 = jnp.where(df != 0.0, r1 - f1 * (r1 - r0) / jnp.where(df != 0.0, df, 1.0), r1)
-        r2 = jnp.clip(r2, 1e-6 * r_max, r_max)
-        return r1, f1, r2, miss(r2)
+        step = jnp.clip(jnp.where(df != 0.0, r1 - f1 * (r1 - r0) / jnp.where(df != 0.0, df, 1.0), r1),
+                        1e-6 * r_max, r_max)
+        start = r_max * jnp.sqrt(jnp.clip(target / jnp.abs(full), 1e-12, 1.0))
+        r = jnp.select([k == 0, k == 1, k == 2], [r_max, start, 0.9 * r0], step)
+        value = _turn_of(chain, phi0, r, d, 1.0)
+        f = jnp.abs(value) - target
+        return jax.lax.switch(jnp.minimum(k, 2), [
+            lambda: (value, r0, f0, r1, f1),  # the r_max circle
+            lambda: (full, r, f, r, f),  # the first start (in both places)
+            lambda: (full, r1, f1, r, f),  # the second start, then the secant steps
+        ])
 
-    r0 = r_max * jnp.sqrt(jnp.clip(target / jnp.abs(full), 1e-12, 1.0))
-    r1 = 0.9 * r0
-    _, _, r, f = jax.lax.fori_loop(0, SECANT_STEPS, secant, (r0, miss(r0), r1, miss(r1)))
+    z = jnp.zeros_like(r_max)
+    full, _, _, r, f = jax.lax.fori_loop(0, SECANT_STEPS + 3, trip, (z, z, z, z, z))
     return full, r, f
 
 
