@@ -777,8 +777,12 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
     # (saved at n_points only so that a caller's path with as many points, e.g.
     # somersault_free_winding's check, shares its compiled program)
-    xT = saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points, owner="pmp_residual")[1][-1]
     ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
+    # both programs traced now, one after the other, and compiled (or loaded) in the
+    # background side by side (the sweep needs only x(T)'s shape)
+    prepare_saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points)
+    _costate_sweep.prepare(ham, control, np.zeros(np.shape(ocp.x0)), np.zeros(m), rt, at, n_points, adj)
+    xT = saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points, owner="pmp_residual")[1][-1]
     if multipliers is None and m == 0:
         nu = np.zeros(0)
     elif multipliers is None:
