@@ -362,11 +362,12 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     loose = loose_tol is not None and (rtol < loose_tol or atol < loose_tol)
     sh = _Shooting(ocp, param, host_array(max(rtol, loose_tol)),
                    host_array(max(atol, loose_tol))) if loose else sh_final
-    # the solver's three programs are traced here, one after the other, and compiled by
+    # the solver's programs are traced here, one after the other, and compiled by
     # XLA in the background, side by side (in a new process most of a first solve)
     _values_and_jacobian.prepare(sh, z)
     _values_jit.prepare(sh, z)
     _lagrangian_gradients.prepare(sh, np.zeros((P - m, P)), np.zeros(m + 1))
+    _control_cost_hessian.prepare(ocp, param, z)
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(D)):
         raise ProblemError("the cost, the constraints or their derivatives are not finite at the guess")
