@@ -404,6 +404,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                 f"stalled at violation {np.abs(y[1:]).max():.2e}): the target may be unreachable in time T "
                 "with this parametrization, or the guess too far")
         converged, msg, it, alpha, stalled = False, "max_iter reached", 0, 0.0, False
+        first_step = 1.0  # where the next line search starts
         for it in range(1, max_iter + 1):
             g, A = D[0], D[1:]
             stat, lam = _stationarity(g, A)
@@ -428,9 +429,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             gr = Z.T @ (g + A.T @ lam)
             d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
             slope = (g + A.T @ lam) @ d
-            # a search starts at twice the last accepted step (a full step after a full
-            # one): after a short step the full one failed again in the next iteration
-            alpha, accepted = min(1.0, 2.0 * alpha) if it > 1 else 1.0, False
+            alpha, accepted = first_step, False
             for _ in range(20):
                 z_t = z + alpha * d
                 y_t = _values(sh, z_t)
@@ -445,7 +444,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                         break
                 alpha *= 0.5
             if not accepted and loose:
-                stalled = True  # go on at the requested tolerances
+                stalled, first_step = True, 1.0  # go on at the requested tolerances, from a full step
                 continue
             if not accepted:
                 msg = "line search failed (cost not decreasing along the restored step)"
@@ -453,6 +452,9 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                     msg += f"; stationarity {stat:.1e} is near the tolerance, at the noise of the integration"
                 break
             z, y, D = z_t, y_t, D_t
+            # the next search starts at twice this step (a full step after a full one):
+            # after a short step the full one failed again in the next iteration
+            first_step = min(1.0, 2.0 * alpha)
     finally:
         bar.finish(converged)
     z = host_array(z)
