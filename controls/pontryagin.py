@@ -753,10 +753,16 @@ def prepare_pmp_residual(ocp: OCP, control, *, rtol=1e-11, atol=1e-11, n_points=
     ``control``'s structure (e.g. the parametrization's signal of any parameters) now
     and compile it in the background; see ``prepare_pontryagin``."""
     _check_sweep(ocp, control, "prepare_pmp_residual", rtol, atol, n_points)
-    n, m = ocp.x0.shape[0], ocp.n_constraints
-    ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
+    return _prepare_residual(ocp, control, rtol, atol, n_points, _sweep_pieces(ocp, rtol, atol))
+
+
+def _prepare_residual(ocp, control, rtol, atol, n_points, pieces) -> bool:
+    """Both of ``pmp_residual``'s programs traced now, one after the other, and compiled
+    (or loaded) in the background side by side (the sweep needs only x(T)'s shape)."""
+    ham, rt, at, adj = pieces
     started = prepare_saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points)
-    return _costate_sweep.prepare(ham, control, np.zeros(n), np.zeros(m), rt, at, n_points, adj) or started
+    x_T, nu = np.zeros(ocp.x0.shape[0]), np.zeros(ocp.n_constraints)
+    return _costate_sweep.prepare(ham, control, x_T, nu, rt, at, n_points, adj) or started
 
 
 def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11, n_points=201):
@@ -775,13 +781,10 @@ def pmp_residual(ocp: OCP, control, multipliers=None, *, rtol=1e-11, atol=1e-11,
     m = ocp.n_constraints
     if multipliers is not None:
         check_guess("multipliers", multipliers, (m,), "problem's terminal constraints")
+    ham, rt, at, adj = pieces = _sweep_pieces(ocp, rtol, atol)
+    _prepare_residual(ocp, control, rtol, atol, n_points, pieces)
     # (saved at n_points only so that a caller's path with as many points, e.g.
     # somersault_free_winding's check, shares its compiled program)
-    ham, rt, at, adj = _sweep_pieces(ocp, rtol, atol)
-    # both programs traced now, one after the other, and compiled (or loaded) in the
-    # background side by side (the sweep needs only x(T)'s shape)
-    prepare_saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points)
-    _costate_sweep.prepare(ham, control, np.zeros(np.shape(ocp.x0)), np.zeros(m), rt, at, n_points, adj)
     xT = saved_path(ocp, control, rtol=rtol, atol=atol, n_points=n_points, owner="pmp_residual")[1][-1]
     if multipliers is None and m == 0:
         nu = np.zeros(0)
