@@ -77,8 +77,7 @@ def under_differentiation(*trees) -> bool:
     or ``jax.linearize`` (the outermost transformation at this point differentiates):
     then a solve gains nothing from ``as_one_function`` (its custom VJP's forward pass
     runs the unwrapped program, and forward mode does not pass through it), and
-    wrapping it costs one more trace of the whole program (on the spherical robot's
-    reverse pass about a quarter of the trace)."""
+    wrapping it costs one more trace of the whole program."""
     return any(isinstance(x, _DIFF_TRACERS) for x in jtu.tree_leaves(trees))
 
 
