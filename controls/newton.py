@@ -18,7 +18,11 @@ steps:
   from one forward solve carrying the P parameter tangents);
 * the reduced Hessian Z^T H Z of the Lagrangian J + lam . psi (Z a basis of the
   null space of A) by one-sided differences of its reverse-mode gradient along
-  the columns of Z (P - m reverse passes, vmapped);
+  the columns of Z (P - m reverse passes, vmapped). That program is the solver's
+  largest to trace and compile, so a first solve in a new process prepares it in a
+  thread of its own and, until it is ready, takes the same gradients from the
+  Jacobian's program (P - m forward solves with P tangents: slower to run, but
+  nothing to wait for); the two agree to the differences' accuracy;
 * a Newton step in the null space of A, with the reduced Hessian's negative
   eigenvalues replaced by their magnitudes (saddle-free Newton), then
   restoration; the step is halved until the restored cost decreases (Armijo).
@@ -179,12 +183,22 @@ def _control_cost_hessian(ocp, param, z):
 def _reduced_hessian(sh, z, g, Z, w, h):
     """Z^T H Z, H the Hessian of w . (J, psi) at z, by one-sided differences of its
     reverse-mode gradient along the columns of Z (P - m reverse passes, vmapped; ``g``
-    the gradient at z, which the iteration already has). Only the reduced Hessian
-    enters the null-space step, so the directions of A's rows are not differenced."""
+    the gradient at z, which the iteration already has), or of the same gradient from
+    the forward sensitivities' Jacobian while the reverse passes' program is still being
+    prepared (module docstring). Only the reduced Hessian enters the null-space step,
+    so the directions of A's rows are not differenced."""
     k = Z.shape[1]
     if k == 0:
         return np.zeros((0, 0))
-    G = np.asarray(_lagrangian_gradients(sh, z[None, :] + h * Z.T, np.asarray(w)))
+    zs, w = z[None, :] + h * Z.T, np.asarray(w)
+    if _lagrangian_gradients.pending(sh, zs, w):
+        # its program is still being traced or compiled in the background (a first solve
+        # in a new process): the same gradients from the forward sensitivities' Jacobian
+        # at each point, whose program the solver has (k forward solves with P tangents
+        # instead of k vmapped reverse passes: slower to run, nothing to wait for)
+        G = np.stack([np.asarray(_values_and_jacobian(sh, zj)[1]).T @ w for zj in zs])
+    else:
+        G = np.asarray(_lagrangian_gradients(sh, zs, w))
     R = (G - g[None, :]) @ Z / h
     return 0.5 * (R + R.T)
 
@@ -366,8 +380,10 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     # XLA in the background, side by side (in a new process most of a first solve)
     _values_and_jacobian.prepare(sh, z)
     _values_jit.prepare(sh, z)
-    _lagrangian_gradients.prepare(sh, np.zeros((P - m, P)), np.zeros(m + 1))
     _control_cost_hessian.prepare(ocp, param, z)
+    # the Hessian's program (the largest trace and compile) in a thread of its own: until
+    # it is ready, the reduced Hessians come from the Jacobian's program (_reduced_hessian)
+    _lagrangian_gradients.prepare_later(sh, np.zeros((P - m, P)), np.zeros(m + 1))
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(D)):
         raise ProblemError("the cost, the constraints or their derivatives are not finite at the guess")

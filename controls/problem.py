@@ -127,8 +127,22 @@ def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
         with nan_errors(errors):
             return _programs.prepare(name, counted, args, error_mode=errors, compiler_options=options)
 
+    def prepare_later(*args):
+        """``prepare`` with the trace too in a thread of its own
+        (``nhjax._programs.prepare_later``), for a program that a solver can do without
+        until it is ready (``pending``). Returns whether that thread was started."""
+        return _programs.prepare_later(name, counted, args, error_mode=errors, compiler_options=options,
+                                       context=lambda: nan_errors(errors))
+
+    def pending(*args):
+        """Whether this program for ``args``'s structure is still being traced or
+        compiled in the background (a call now would wait for it)."""
+        return _programs.pending(name, counted, args, error_mode=errors, compiler_options=options)
+
     call.jitted = jitted
     call.prepare = prepare
+    call.prepare_later = prepare_later
+    call.pending = pending
     return call
 
 

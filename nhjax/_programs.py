@@ -60,6 +60,7 @@ import pickle
 import re
 import threading
 import types
+import weakref
 from pathlib import Path
 from typing import Any, Callable
 
@@ -491,6 +492,8 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
     quick = _quick_key(name, fn, args, error_mode, flat, options)
     if quick is _TRACED:
         return None
+    if not background and quick is not None:
+        _wait_for_later(quick)
     with _LOCK:
         program = _MEMORY.get(quick) if quick is not None else None
     program = program if background else _settled(program)
@@ -514,6 +517,7 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
             # code's size), with the GIL released: in the background, beside the
             # caller's work and other loads
             program = _compiler().submit(_load_or_raise, exe_path)
+            _LOADS.add(program)
         else:
             program = _load_executable(exe_path)
         if program is None:
@@ -834,10 +838,76 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
     flat = jtu.tree_flatten(args)
     quick = _quick_key(name, fn, args, error_mode, flat, compiler_options)
     with _LOCK:
-        if quick is _TRACED or (quick is not None and quick in _MEMORY):
+        if quick is _TRACED or (quick is not None and (quick in _MEMORY or quick in _LATER)):
             return False
     program = _program(name, fn, args, error_mode, compiler_options, flat=flat, background=True)
     return isinstance(program, concurrent.futures.Future)
+
+
+_LATER: dict = {}  # quick key -> future of the thread that traces a program (prepare_later)
+_LOADS: "weakref.WeakSet" = weakref.WeakSet()  # futures of background loads (not compiles)
+_TRACER = None
+
+
+def _tracer():
+    global _TRACER
+    if _TRACER is None:
+        _TRACER = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="nhjax-trace")
+    return _TRACER
+
+
+def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
+                  compiler_options: dict | None = None, context: Callable | None = None) -> bool:
+    """``prepare`` with the trace too in a thread of its own (then the compile in the
+    background as ``prepare``'s), for a program that a solver can do without until it is
+    ready (``pending``) and whose trace would otherwise hold up the solver's first
+    answer. ``context()``: a context manager entered in that thread around the trace,
+    for the caller's thread-local settings that tracing reads (equinox's error mode is
+    ``error_mode``, already). A call that needs the program meanwhile waits for that
+    thread, then for the compile. Nothing is done when the program cache is off, the
+    arguments are traced or the program is known already. Returns whether the thread
+    was started."""
+    if directory() is None or jax.config.jax_disable_jit:
+        return False
+    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
+    if quick is None or quick is _TRACED:
+        return False
+    with _LOCK:
+        if quick in _MEMORY or quick in _LATER:
+            return False
+
+        def trace():
+            with context() if context is not None else contextlib.nullcontext():
+                _program(name, fn, args, error_mode, compiler_options, background=True)
+
+        _LATER[quick] = _tracer().submit(trace)
+    return True
+
+
+def pending(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
+            compiler_options: dict | None = None) -> bool:
+    """Whether ``fn``'s program for ``args``'s structure is being traced or compiled in
+    the background now (``prepare_later``, ``prepare``): a call would wait for it. A
+    background load of a stored executable does not count (it takes a fraction of a
+    second)."""
+    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
+    if quick is None or quick is _TRACED:
+        return False
+    with _LOCK:
+        later, program = _LATER.get(quick), _MEMORY.get(quick)
+    if later is not None and not later.done():
+        return True
+    return (isinstance(program, concurrent.futures.Future) and not program.done()
+            and program not in _LOADS)
+
+
+def _wait_for_later(quick):
+    """Wait for a thread of ``prepare_later`` that traces this program (its failure is
+    the caller's to meet again)."""
+    with _LOCK:
+        later = _LATER.get(quick)
+    if later is not None:
+        concurrent.futures.wait([later])
 
 
 def output_structure(name: str, fn: Callable, args: tuple, error_mode: str | None = None,

@@ -351,6 +351,58 @@ def test_prepare_traces_now_compiles_in_the_background_and_the_call_uses_it(tmp_
     np.testing.assert_array_equal(again["z"], eqx.filter_jit(fn2)(y)["z"])
 
 
+def test_prepare_later_traces_in_a_thread_and_pending_says_so_until_it_is_compiled(tmp_path, monkeypatch):
+    """prepare_later() traces the program in a thread of its own (then compiles it in
+    the background): meanwhile ``pending`` is true, prepare() and prepare_later() start
+    nothing new, and a call waits for that thread instead of tracing again; its result
+    equals plain jit. In a new process the stored executable is loaded, which is not
+    pending work."""
+    import concurrent.futures
+    import threading
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    monkeypatch.setattr(_programs, "_LATER", {})
+    fn = _user_function("def g(x, y):\n    return {'z': jnp.cos(x) @ y + jnp.sum(x)}\n", "g")
+    x, y = jnp.linspace(-1.0, 2.0, 6).reshape(2, 3), jnp.array([0.5, -1.0, 2.0])
+    gate, traced_in = threading.Event(), []
+    real_export = _programs._export
+
+    def gated_export(*a, **k):  # the trace, held until the test lets it go on
+        traced_in.append(threading.current_thread().name)
+        assert gate.wait(60)
+        return real_export(*a, **k)
+
+    monkeypatch.setattr(_programs, "_export", gated_export)
+    stored = _programs.STATS["stored"]
+    assert _programs.prepare_later("test-later", fn, (x, y))
+    assert _programs.pending("test-later", fn, (x, y))
+    assert not _programs.prepare_later("test-later", fn, (x + 1.0, y))  # under way already
+    assert not _programs.prepare("test-later", fn, (x, y))  # not traced a second time here
+    out = {}
+    caller = threading.Thread(target=lambda: out.update(z=_programs.call("test-later", fn, (2.0 * x, y))["z"]))
+    caller.start()
+    caller.join(0.5)
+    assert caller.is_alive() and _programs.pending("test-later", fn, (x, y))  # the call waits
+    gate.set()
+    caller.join(120)
+    assert not caller.is_alive() and not _programs.pending("test-later", fn, (x, y))
+    assert len(traced_in) == 1 and traced_in[0].startswith("nhjax-trace")
+    assert _programs.STATS["stored"] == stored + 1
+    np.testing.assert_array_equal(out["z"], eqx.filter_jit(fn)(2.0 * x, y)["z"])
+
+    # a new process: the executable on disk is loaded, nothing traced, nothing pending
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    monkeypatch.setattr(_programs, "_LATER", {})
+    compiled = _programs.STATS["compiled"]
+    assert _programs.prepare_later("test-later", fn, (x, y))
+    concurrent.futures.wait(list(_programs._LATER.values()))
+    assert not _programs.pending("test-later", fn, (x, y))
+    again = _programs.call("test-later", fn, (2.0 * x, y))
+    assert len(traced_in) == 1 and _programs.STATS["compiled"] == compiled
+    np.testing.assert_array_equal(again["z"], out["z"])
+
+
 def test_quick_options_are_a_program_of_their_own_and_prepare_passes_them_on(tmp_path, monkeypatch):
     """A program compiled with QUICK_OPTIONS (how the input checks and diagnostics of an
     eager simulate() are compiled) is kept beside, not instead of, its default compile:

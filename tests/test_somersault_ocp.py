@@ -99,6 +99,41 @@ def test_feasible_path_newton_simulates_loosely_first_and_lands_on_the_same_opti
     assert chart_optimum.cost * (1 - 1e-10) <= d.cost < chart_optimum.cost * (1 + 1e-6)
 
 
+def test_reduced_hessian_from_forward_jacobians_equals_the_reverse_mode_one(chart_cat, monkeypatch):
+    """solve_direct_newton's reduced Hessian Z^T H Z of the Lagrangian J + lam . psi, by
+    differences of its gradient along the null-space basis Z: from the forward
+    sensitivities' Jacobian at each point (while the reverse-mode program is still being
+    prepared in a new process) and from the vmapped reverse passes agree to the
+    differences' own accuracy, and both are symmetric with the Hessian's
+    finite-difference curvature along a null-space direction."""
+    from controls import newton
+
+    cat, th0, T = chart_cat
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    param = controls.Chebyshev(10, T, 2)
+    z = np.asarray(param.fit(lambda t: jnp.array([0.1, 2 * np.pi / T])))
+    sh = newton._Shooting(ocp, param, np.asarray(1e-10), np.asarray(1e-10))
+    y, D = (np.asarray(a) for a in newton._values_and_jacobian(sh, z))
+    g, A = D[0], D[1:]
+    _, lam = newton._stationarity(g, A)
+    w = np.concatenate([[1.0], lam])
+    Z = np.linalg.svd(A)[2][A.shape[0]:].T
+    h = 1e-5
+    hessians = {}
+    for pending in (True, False):
+        monkeypatch.setattr(newton._lagrangian_gradients, "pending", lambda *a, p=pending: p)
+        hessians[pending] = newton._reduced_hessian(sh, z, D.T @ w, Z, w, h)
+    fwd, rev = hessians[True], hessians[False]
+    scale = np.abs(rev).max()
+    assert scale > 0
+    np.testing.assert_allclose(fwd, rev, atol=1e-5 * scale)
+    # the curvature of the Lagrangian along Z's first column, by central differences of its values
+    lag = lambda zz: float(np.asarray(newton._values_jit(sh, zz)) @ w)  # noqa: E731
+    e, hc = Z[:, 0], 1e-3
+    curv = (lag(z + hc * e) - 2 * lag(z) + lag(z - hc * e)) / hc**2
+    np.testing.assert_allclose(rev[0, 0], curv, rtol=1e-4)
+
+
 @pytest.mark.slow(reason="two direct solves and the polish in smooth coordinates; the default run keeps the chart somersault by both methods; make test-all")
 def test_free_winding_somersault_in_smooth_coordinates(chart_cat, chart_optimum):
     """In coordinates smooth at the straight cat the winding is the optimizer's choice. A
