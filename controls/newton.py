@@ -19,10 +19,12 @@ steps:
 * the reduced Hessian Z^T H Z of the Lagrangian J + lam . psi (Z a basis of the
   null space of A) by one-sided differences of its reverse-mode gradient along
   the columns of Z (P - m reverse passes, vmapped). That program is the solver's
-  largest to trace and compile, so a first solve in a new process prepares it in a
-  thread of its own and, until it is ready, takes the same gradients from the
-  Jacobian's program (P - m forward solves with P tangents: slower to run, but
-  nothing to wait for); the two agree to the differences' accuracy;
+  largest to trace and compile, so a first solve (nothing stored yet) takes the same
+  gradients from the Jacobian's program instead (P - m forward solves with P
+  tangents: slower to run, nothing to trace or compile; the two agree to the
+  differences' accuracy) and, when it returns, leaves the program to a thread of its
+  own, which traces it and stores it for the next solves (a script's process ends
+  once it is stored);
 * a Newton step in the null space of A, with the reduced Hessian's negative
   eigenvalues replaced by their magnitudes (saddle-free Newton), then
   restoration; the step is halved until the restored cost decreases (Armijo).
@@ -184,21 +186,21 @@ def _reduced_hessian(sh, z, g, Z, w, h):
     """Z^T H Z, H the Hessian of w . (J, psi) at z, by one-sided differences of its
     reverse-mode gradient along the columns of Z (P - m reverse passes, vmapped; ``g``
     the gradient at z, which the iteration already has), or of the same gradient from
-    the forward sensitivities' Jacobian while the reverse passes' program is still being
-    prepared (module docstring). Only the reduced Hessian enters the null-space step,
+    the forward sensitivities' Jacobian while the reverse passes' program is not ready
+    (module docstring). Only the reduced Hessian enters the null-space step,
     so the directions of A's rows are not differenced."""
     k = Z.shape[1]
     if k == 0:
         return np.zeros((0, 0))
     zs, w = z[None, :] + h * Z.T, np.asarray(w)
-    if _lagrangian_gradients.pending(sh, zs, w):
-        # its program is still being traced or compiled in the background (a first solve
-        # in a new process): the same gradients from the forward sensitivities' Jacobian
-        # at each point, whose program the solver has (k forward solves with P tangents
-        # instead of k vmapped reverse passes: slower to run, nothing to wait for)
-        G = np.stack([np.asarray(_values_and_jacobian(sh, zj)[1]).T @ w for zj in zs])
-    else:
+    if _lagrangian_gradients.ready(sh, zs, w):
         G = np.asarray(_lagrangian_gradients(sh, zs, w))
+    else:
+        # its program is not stored yet (a first solve in a new process): the same
+        # gradients from the forward sensitivities' Jacobian at each point, whose program
+        # the solver has (k forward solves with P tangents instead of k vmapped reverse
+        # passes: slower to run, nothing to trace or compile)
+        G = np.stack([np.asarray(_values_and_jacobian(sh, zj)[1]).T @ w for zj in zs])
     R = (G - g[None, :]) @ Z / h
     return 0.5 * (R + R.T)
 
@@ -381,9 +383,11 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     _values_and_jacobian.prepare(sh, z)
     _values_jit.prepare(sh, z)
     _control_cost_hessian.prepare(ocp, param, z)
-    # the Hessian's program (the largest trace and compile) in a thread of its own: until
-    # it is ready, the reduced Hessians come from the Jacobian's program (_reduced_hessian)
-    _lagrangian_gradients.prepare_later(sh, np.zeros((P - m, P)), np.zeros(m + 1))
+    # the Hessian's program (the largest to trace and compile) only if it is stored: a
+    # first solve takes its Hessians from the Jacobian's program (_reduced_hessian) and
+    # leaves this one to a thread of its own when it returns
+    hessian_args = (sh, np.zeros((P - m, P)), np.zeros(m + 1))
+    _lagrangian_gradients.prepare(*hessian_args, trace=False)
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(D)):
         raise ProblemError("the cost, the constraints or their derivatives are not finite at the guess")
@@ -473,6 +477,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             first_step = min(1.0, 2.0 * alpha)
     finally:
         bar.finish(converged)
+    _lagrangian_gradients.prepare_later(*hessian_args)  # for the next solve (nothing if it is there)
     z = host_array(z)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),

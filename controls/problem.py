@@ -121,28 +121,29 @@ def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
             return _programs.call(name, counted, args, error_mode=errors, fallback=jitted,
                                   compiler_options=options)
 
-    def prepare(*args):
+    def prepare(*args, trace=True):
         """Trace this program for ``args``'s structure now and compile it in the
-        background (``nhjax._programs.prepare``), for a solver that calls it later."""
+        background (``nhjax._programs.prepare``), for a solver that calls it later;
+        ``trace=False``: only a stored one (loaded in the background), nothing traced."""
         with nan_errors(errors):
-            return _programs.prepare(name, counted, args, error_mode=errors, compiler_options=options)
+            return _programs.prepare(name, counted, args, error_mode=errors, compiler_options=options, trace=trace)
 
     def prepare_later(*args):
         """``prepare`` with the trace too in a thread of its own
         (``nhjax._programs.prepare_later``), for a program that a solver can do without
-        until it is ready (``pending``). Returns whether that thread was started."""
+        until it is ready (``ready``). Returns whether that thread was started."""
         return _programs.prepare_later(name, counted, args, error_mode=errors, compiler_options=options,
                                        context=lambda: nan_errors(errors))
 
-    def pending(*args):
-        """Whether this program for ``args``'s structure is still being traced or
-        compiled in the background (a call now would wait for it)."""
-        return _programs.pending(name, counted, args, error_mode=errors, compiler_options=options)
+    def ready(*args):
+        """Whether a call on ``args``'s structure now would trace and compile nothing
+        (``nhjax._programs.ready``)."""
+        return _programs.ready(name, counted, args, error_mode=errors, compiler_options=options)
 
     call.jitted = jitted
     call.prepare = prepare
     call.prepare_later = prepare_later
-    call.pending = pending
+    call.ready = ready
     return call
 
 

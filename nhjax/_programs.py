@@ -478,13 +478,15 @@ def _store(path: Path, data: bytes):
 
 
 def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None, compiler_options=None,
-             flat=None, background=False):
+             flat=None, background=False, trace=True):
     """(compiled caller, output treedef) of ``fn`` on ``args``'s structure, from memory,
     disk (its executable, or its program compiled) or a new export; None when it cannot
     be cached. ``flat``: ``jtu.tree_flatten(args)`` if the caller has it.
     ``background``: a compile that is needed runs in a worker thread; returns its
     future (kept in memory, where the call that needs the program waits for it), or
-    what is there already (a pending future is not waited for)."""
+    what is there already (a pending future is not waited for). ``trace=False``: only
+    what is stored (an executable, an exported program); None if the program would
+    have to be traced."""
     folder = directory()
     if folder is None or jax.config.jax_disable_jit:
         return None
@@ -525,6 +527,8 @@ def _program(name: str, fn: Callable, args: tuple, error_mode: str | None = None
             leaves, dyn_def = jtu.tree_flatten(dyn)
             path = folder / f"{key}.prog"
             program = _load(path)
+            if program is None and not trace:
+                return None
             if program is None:
                 program = _export(fn, static, dyn_def, leaves, path)
             if program is not _FAILED:
@@ -823,7 +827,7 @@ def _compiler():
 
 
 def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
-            compiler_options: dict | None = None) -> bool:
+            compiler_options: dict | None = None, trace: bool = True) -> bool:
     """Get ``fn``'s program on ``args``'s structure ready before it is called: traced and
     lowered now, in the calling thread (tracing reads process-wide settings such as
     equinox's error mode, which only the caller knows to be right), and compiled by XLA
@@ -833,14 +837,16 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
     waits for that compile. An executable on disk is loaded in the background too
     (loading links its machine code, in a time that grows with its size); a program in
     memory is left
-    alone. ``compiler_options`` as for ``call`` (the call must pass the same). Returns
-    whether this call started background work (a compile or a load)."""
+    alone. ``compiler_options`` as for ``call`` (the call must pass the same).
+    ``trace=False``: only a stored program (its executable loaded, or its exported
+    program compiled, in the background); nothing is traced. Returns whether this call
+    started background work (a compile or a load)."""
     flat = jtu.tree_flatten(args)
     quick = _quick_key(name, fn, args, error_mode, flat, compiler_options)
     with _LOCK:
         if quick is _TRACED or (quick is not None and (quick in _MEMORY or quick in _LATER)):
             return False
-    program = _program(name, fn, args, error_mode, compiler_options, flat=flat, background=True)
+    program = _program(name, fn, args, error_mode, compiler_options, flat=flat, background=True, trace=trace)
     return isinstance(program, concurrent.futures.Future)
 
 
@@ -860,7 +866,7 @@ def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None =
                   compiler_options: dict | None = None, context: Callable | None = None) -> bool:
     """``prepare`` with the trace too in a thread of its own (then the compile in the
     background as ``prepare``'s), for a program that a solver can do without until it is
-    ready (``pending``) and whose trace would otherwise hold up the solver's first
+    ready (``ready``) and whose trace would otherwise hold up the solver's first
     answer. ``context()``: a context manager entered in that thread around the trace,
     for the caller's thread-local settings that tracing reads (equinox's error mode is
     ``error_mode``, already). A call that needs the program meanwhile waits for that
@@ -884,21 +890,38 @@ def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None =
     return True
 
 
-def pending(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
-            compiler_options: dict | None = None) -> bool:
-    """Whether ``fn``'s program for ``args``'s structure is being traced or compiled in
-    the background now (``prepare_later``, ``prepare``): a call would wait for it. A
-    background load of a stored executable does not count (it takes a fraction of a
-    second)."""
+def ready(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
+          compiler_options: dict | None = None) -> bool:
+    """Whether a call of ``fn`` on ``args``'s structure now would trace and compile
+    nothing: its program is in memory (compiled, or its stored executable being loaded),
+    or the program cache cannot keep it (the call then traces as ``jax.jit`` does, as it
+    would anyway). False while it is being traced (``prepare_later``) or compiled in the
+    background, or when it is not known yet."""
+    if directory() is None or jax.config.jax_disable_jit:
+        return True
     quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
     if quick is None or quick is _TRACED:
-        return False
-    with _LOCK:
-        later, program = _LATER.get(quick), _MEMORY.get(quick)
-    if later is not None and not later.done():
         return True
-    return (isinstance(program, concurrent.futures.Future) and not program.done()
-            and program not in _LOADS)
+    with _LOCK:
+        program = _MEMORY.get(quick)
+    if program is None:
+        return False
+    if isinstance(program, concurrent.futures.Future):
+        return program.done() or program in _LOADS
+    return True
+
+
+def settle():
+    """Wait for this process's background work on programs (``prepare``'s compiles and
+    loads, ``prepare_later``'s traces and the compiles they start): what a benchmark
+    of calls "after compile" waits for first."""
+    while True:
+        with _LOCK:
+            futures = [f for f in (*_LATER.values(), *_MEMORY.values())
+                       if isinstance(f, concurrent.futures.Future) and not f.done()]
+        if not futures:
+            return
+        concurrent.futures.wait(futures)
 
 
 def _wait_for_later(quick):

@@ -351,13 +351,13 @@ def test_prepare_traces_now_compiles_in_the_background_and_the_call_uses_it(tmp_
     np.testing.assert_array_equal(again["z"], eqx.filter_jit(fn2)(y)["z"])
 
 
-def test_prepare_later_traces_in_a_thread_and_pending_says_so_until_it_is_compiled(tmp_path, monkeypatch):
-    """prepare_later() traces the program in a thread of its own (then compiles it in
-    the background): meanwhile ``pending`` is true, prepare() and prepare_later() start
-    nothing new, and a call waits for that thread instead of tracing again; its result
-    equals plain jit. In a new process the stored executable is loaded, which is not
-    pending work."""
-    import concurrent.futures
+def test_prepare_later_traces_in_a_thread_and_ready_says_when_a_call_would_not_wait(tmp_path, monkeypatch):
+    """prepare(trace=False) takes only a stored program (nothing is traced); prepare_later()
+    traces the program in a thread of its own, then compiles it in the background:
+    meanwhile ``ready`` is false, prepare() and prepare_later() start nothing new, and a
+    call waits for that thread instead of tracing again, with results equal to plain
+    jit. In a new process prepare(trace=False) loads the stored executable, and the
+    program is ready without a trace or a compile."""
     import threading
 
     monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
@@ -375,32 +375,38 @@ def test_prepare_later_traces_in_a_thread_and_pending_says_so_until_it_is_compil
 
     monkeypatch.setattr(_programs, "_export", gated_export)
     stored = _programs.STATS["stored"]
+    assert not _programs.prepare("test-later", fn, (x, y), trace=False)  # nothing stored: nothing done
+    assert not traced_in and not _programs.ready("test-later", fn, (x, y))
     assert _programs.prepare_later("test-later", fn, (x, y))
-    assert _programs.pending("test-later", fn, (x, y))
+    assert not _programs.ready("test-later", fn, (x, y))
     assert not _programs.prepare_later("test-later", fn, (x + 1.0, y))  # under way already
     assert not _programs.prepare("test-later", fn, (x, y))  # not traced a second time here
     out = {}
     caller = threading.Thread(target=lambda: out.update(z=_programs.call("test-later", fn, (2.0 * x, y))["z"]))
     caller.start()
     caller.join(0.5)
-    assert caller.is_alive() and _programs.pending("test-later", fn, (x, y))  # the call waits
+    assert caller.is_alive() and not _programs.ready("test-later", fn, (x, y))  # the call waits
     gate.set()
     caller.join(120)
-    assert not caller.is_alive() and not _programs.pending("test-later", fn, (x, y))
+    assert not caller.is_alive() and _programs.ready("test-later", fn, (x, y))
     assert len(traced_in) == 1 and traced_in[0].startswith("nhjax-trace")
     assert _programs.STATS["stored"] == stored + 1
     np.testing.assert_array_equal(out["z"], eqx.filter_jit(fn)(2.0 * x, y)["z"])
 
-    # a new process: the executable on disk is loaded, nothing traced, nothing pending
+    # a new process: the stored executable is loaded, nothing traced or compiled
     monkeypatch.setattr(_programs, "_MEMORY", {})
     monkeypatch.setattr(_programs, "_LATER", {})
     compiled = _programs.STATS["compiled"]
-    assert _programs.prepare_later("test-later", fn, (x, y))
-    concurrent.futures.wait(list(_programs._LATER.values()))
-    assert not _programs.pending("test-later", fn, (x, y))
+    assert not _programs.ready("test-later", fn, (x, y))
+    assert _programs.prepare("test-later", fn, (x, y), trace=False)
+    assert _programs.ready("test-later", fn, (x, y))  # (a load does not make a call wait long)
+    _programs.settle()  # the background load, waited for
+    assert all(f.done() for f in _programs._MEMORY.values() if hasattr(f, "done"))
     again = _programs.call("test-later", fn, (2.0 * x, y))
     assert len(traced_in) == 1 and _programs.STATS["compiled"] == compiled
     np.testing.assert_array_equal(again["z"], out["z"])
+    assert not _programs.prepare_later("test-later", fn, (x, y))  # in memory: nothing to do
+    assert not _programs._LATER
 
 
 def test_quick_options_are_a_program_of_their_own_and_prepare_passes_them_on(tmp_path, monkeypatch):

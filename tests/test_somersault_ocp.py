@@ -102,8 +102,8 @@ def test_feasible_path_newton_simulates_loosely_first_and_lands_on_the_same_opti
 def test_reduced_hessian_from_forward_jacobians_equals_the_reverse_mode_one(chart_cat, monkeypatch):
     """solve_direct_newton's reduced Hessian Z^T H Z of the Lagrangian J + lam . psi, by
     differences of its gradient along the null-space basis Z: from the forward
-    sensitivities' Jacobian at each point (while the reverse-mode program is still being
-    prepared in a new process) and from the vmapped reverse passes agree to the
+    sensitivities' Jacobian at each point (in a first solve, before the reverse-mode
+    program is stored) and from the vmapped reverse passes agree to the
     differences' own accuracy, and both are symmetric with the Hessian's
     finite-difference curvature along a null-space direction."""
     from controls import newton
@@ -120,10 +120,10 @@ def test_reduced_hessian_from_forward_jacobians_equals_the_reverse_mode_one(char
     Z = np.linalg.svd(A)[2][A.shape[0]:].T
     h = 1e-5
     hessians = {}
-    for pending in (True, False):
-        monkeypatch.setattr(newton._lagrangian_gradients, "pending", lambda *a, p=pending: p)
-        hessians[pending] = newton._reduced_hessian(sh, z, D.T @ w, Z, w, h)
-    fwd, rev = hessians[True], hessians[False]
+    for ready in (False, True):
+        monkeypatch.setattr(newton._lagrangian_gradients, "ready", lambda *a, r=ready: r)
+        hessians[ready] = newton._reduced_hessian(sh, z, D.T @ w, Z, w, h)
+    fwd, rev = hessians[False], hessians[True]
     scale = np.abs(rev).max()
     assert scale > 0
     np.testing.assert_allclose(fwd, rev, atol=1e-5 * scale)
