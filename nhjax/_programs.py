@@ -816,14 +816,20 @@ def _settled(program):
         return None
 
 
-_COMPILER = None
+_POOLS: dict = {}  # long-lived worker threads by task: "prepare" (compiles, loads), "trace"
+_POOL_LOCK = threading.Lock()  # (not _LOCK: prepare_later asks for its pool holding that)
+
+
+def _pool(task: str, workers: int):
+    with _POOL_LOCK:
+        if task not in _POOLS:
+            _POOLS[task] = concurrent.futures.ThreadPoolExecutor(max_workers=workers,
+                                                                 thread_name_prefix=f"nhjax-{task}")
+        return _POOLS[task]
 
 
 def _compiler():
-    global _COMPILER
-    if _COMPILER is None:
-        _COMPILER = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="nhjax-prepare")
-    return _COMPILER
+    return _pool("prepare", 2)
 
 
 def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
@@ -852,16 +858,6 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
 
 _LATER: dict = {}  # quick key -> future of the thread that traces a program (prepare_later)
 _LOADS: "weakref.WeakSet" = weakref.WeakSet()  # futures of background loads (not compiles)
-_TRACER = None
-
-
-def _tracer():
-    global _TRACER
-    if _TRACER is None:
-        _TRACER = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix="nhjax-trace")
-    return _TRACER
-
-
 def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
                   compiler_options: dict | None = None, context: Callable | None = None) -> bool:
     """``prepare`` with the trace too in a thread of its own (then the compile in the
@@ -886,7 +882,7 @@ def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None =
             with context() if context is not None else contextlib.nullcontext():
                 _program(name, fn, args, error_mode, compiler_options, background=True)
 
-        _LATER[quick] = _tracer().submit(trace)
+        _LATER[quick] = _pool("trace", 1).submit(trace)
     return True
 
 
