@@ -858,6 +858,15 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
 
 _LATER: dict = {}  # quick key -> future of the thread that traces a program (prepare_later)
 _LOADS: "weakref.WeakSet" = weakref.WeakSet()  # futures of background loads (not compiles)
+def _stored_key(name, fn, args, error_mode, compiler_options):
+    """The in-process key of a program the cache can keep; None when the cache is off,
+    an argument is traced or a static value is unhashable (then calls trace as usual)."""
+    if directory() is None or jax.config.jax_disable_jit:
+        return None
+    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
+    return None if quick is _TRACED else quick
+
+
 def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
                   compiler_options: dict | None = None, context: Callable | None = None) -> bool:
     """``prepare`` with the trace too in a thread of its own (then the compile in the
@@ -869,10 +878,8 @@ def prepare_later(name: str, fn: Callable, args: tuple, error_mode: str | None =
     thread, then for the compile. Nothing is done when the program cache is off, the
     arguments are traced or the program is known already. Returns whether the thread
     was started."""
-    if directory() is None or jax.config.jax_disable_jit:
-        return False
-    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
-    if quick is None or quick is _TRACED:
+    quick = _stored_key(name, fn, args, error_mode, compiler_options)
+    if quick is None:
         return False
     with _LOCK:
         if quick in _MEMORY or quick in _LATER:
@@ -893,10 +900,8 @@ def ready(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
     or the program cache cannot keep it (the call then traces as ``jax.jit`` does, as it
     would anyway). False while it is being traced (``prepare_later``) or compiled in the
     background, or when it is not known yet."""
-    if directory() is None or jax.config.jax_disable_jit:
-        return True
-    quick = _quick_key(name, fn, args, error_mode, None, compiler_options)
-    if quick is None or quick is _TRACED:
+    quick = _stored_key(name, fn, args, error_mode, compiler_options)
+    if quick is None:
         return True
     with _LOCK:
         program = _MEMORY.get(quick)
