@@ -19,12 +19,12 @@ steps:
 * the reduced Hessian Z^T H Z of the Lagrangian J + lam . psi (Z a basis of the
   null space of A) by one-sided differences of its reverse-mode gradient along
   the columns of Z (P - m reverse passes, vmapped). That program is the solver's
-  largest to trace and compile, so a first solve (nothing stored yet) takes the same
-  gradients from the Jacobian's program instead (P - m forward solves with P
-  tangents: slower to run, nothing to trace or compile; the two agree to the
-  differences' accuracy) and, when it returns, leaves the program to a thread of its
-  own, which traces it and stores it for the next solves (a script's process ends
-  once it is stored);
+  largest to trace and compile, so a first solve (nothing stored yet) with few
+  parameters (``SEQUENTIAL_TANGENTS``) takes the same gradients from the Jacobian's
+  program instead (P - m forward solves with P tangents: slower to run, nothing to
+  trace or compile; the two agree to the differences' accuracy) and, when it
+  returns, leaves the program to a thread of its own, which traces it and stores it
+  for the next solves (a script's process ends once it is stored);
 * a Newton step in the null space of A, with the reduced Hessian's negative
   eigenvalues replaced by their magnitudes (saddle-free Newton), then
   restoration; the step is halved until the restored cost decreases (Armijo).
@@ -77,6 +77,14 @@ LOOSE_UNTIL = 1e-3
 #: A line search's trial point is restored by Gauss-Newton only while each step
 #: shrinks the violation by at least this factor; otherwise the step is halved.
 CONTRACTION = 0.5
+
+#: A first solve (the Hessian's program not stored yet) takes its reduced Hessians from
+#: the Jacobian's program when that costs at most this many tangent solves per Hessian
+#: ((P - m) forward solves with P tangents each): on the spherical robot's steering
+#: (144) and the 3-link chain's reorientation (504) that answered 20-50% sooner than
+#: waiting for the reverse passes' program; on the thruster chain (55 x 65 = 3575) it
+#: answered later (25 s against 18-20 s), so there the program is prepared at the start.
+SEQUENTIAL_TANGENTS = 1024
 
 class _Shooting(eqx.Module):
     """Single shooting: parameters -> (cost, terminal constraints), as one pytree."""
@@ -182,18 +190,18 @@ def _control_cost_hessian(ocp, param, z):
     return jax.hessian(quad)(z)
 
 
-def _reduced_hessian(sh, z, g, Z, w, h):
+def _reduced_hessian(sh, z, g, Z, w, h, wait=True):
     """Z^T H Z, H the Hessian of w . (J, psi) at z, by one-sided differences of its
     reverse-mode gradient along the columns of Z (P - m reverse passes, vmapped; ``g``
-    the gradient at z, which the iteration already has), or of the same gradient from
-    the forward sensitivities' Jacobian while the reverse passes' program is not ready
-    (module docstring). Only the reduced Hessian enters the null-space step,
+    the gradient at z, which the iteration already has), or, with ``wait`` False and
+    the reverse passes' program not ready, of the same gradient from the forward
+    sensitivities' Jacobian (module docstring). Only the reduced Hessian enters the null-space step,
     so the directions of A's rows are not differenced."""
     k = Z.shape[1]
     if k == 0:
         return np.zeros((0, 0))
     zs, w = z[None, :] + h * Z.T, np.asarray(w)
-    if _lagrangian_gradients.ready(sh, zs, w):
+    if wait or _lagrangian_gradients.ready(sh, zs, w):
         G = np.asarray(_lagrangian_gradients(sh, zs, w))
     else:
         # its program is not stored yet (a first solve in a new process): the same
@@ -383,11 +391,13 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
     _values_and_jacobian.prepare(sh, z)
     _values_jit.prepare(sh, z)
     _control_cost_hessian.prepare(ocp, param, z)
-    # the Hessian's program (the largest to trace and compile) only if it is stored: a
-    # first solve takes its Hessians from the Jacobian's program (_reduced_hessian) and
+    # the Hessian's program (the largest to trace and compile): when the Jacobian's
+    # program can stand in for it (SEQUENTIAL_TANGENTS), only if it is stored; a first
+    # solve then takes its Hessians from the Jacobian's program (_reduced_hessian) and
     # leaves this one to a thread of its own when it returns
     hessian_args = (sh, np.zeros((P - m, P)), np.zeros(m + 1))
-    _lagrangian_gradients.prepare(*hessian_args, trace=False)
+    wait = (P - m) * P > SEQUENTIAL_TANGENTS
+    _lagrangian_gradients.prepare(*hessian_args, trace=wait)
     y, D = (np.asarray(a) for a in _values_and_jacobian(sh, z))
     if not np.all(np.isfinite(y)) or not np.all(np.isfinite(D)):
         raise ProblemError("the cost, the constraints or their derivatives are not finite at the guess")
@@ -445,7 +455,7 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             w = np.concatenate([[1.0], lam])
             _, S, Vt = np.linalg.svd(A)
             Z = Vt[np.sum(S > 1e-12 * S[0]):].T
-            ev, V = np.linalg.eigh(_reduced_hessian(sh, z, D.T @ w, Z, w, fd_step))
+            ev, V = np.linalg.eigh(_reduced_hessian(sh, z, D.T @ w, Z, w, fd_step, wait))
             gr = Z.T @ (g + A.T @ lam)
             d = -Z @ (V @ ((V.T @ gr) / np.maximum(np.abs(ev), floor)))
             slope = (g + A.T @ lam) @ d
@@ -477,7 +487,8 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
             first_step = min(1.0, 2.0 * alpha)
     finally:
         bar.finish(converged)
-    _lagrangian_gradients.prepare_later(*hessian_args)  # for the next solve (nothing if it is there)
+    if not wait:
+        _lagrangian_gradients.prepare_later(*hessian_args)  # for the next solve (nothing if it is there)
     z = host_array(z)
     return DirectResult(
         params=z, control=param.signal(z), cost=float(y[0]), violation=float(np.abs(y[1:]).max()),

@@ -120,9 +120,9 @@ def test_reduced_hessian_from_forward_jacobians_equals_the_reverse_mode_one(char
     Z = np.linalg.svd(A)[2][A.shape[0]:].T
     h = 1e-5
     hessians = {}
-    for ready in (False, True):
-        monkeypatch.setattr(newton._lagrangian_gradients, "ready", lambda *a, r=ready: r)
-        hessians[ready] = newton._reduced_hessian(sh, z, D.T @ w, Z, w, h)
+    monkeypatch.setattr(newton._lagrangian_gradients, "ready", lambda *a: False)
+    for wait in (False, True):
+        hessians[wait] = newton._reduced_hessian(sh, z, D.T @ w, Z, w, h, wait=wait)
     fwd, rev = hessians[False], hessians[True]
     scale = np.abs(rev).max()
     assert scale > 0
