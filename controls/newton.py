@@ -80,11 +80,13 @@ CONTRACTION = 0.5
 
 #: A first solve (the Hessian's program not stored yet) takes its reduced Hessians from
 #: the Jacobian's program when that costs at most this many tangent solves per Hessian
-#: ((P - m) forward solves with P tangents each): on the spherical robot's steering
-#: (144) and the 3-link chain's reorientation (504) that answered 20-50% sooner than
-#: waiting for the reverse passes' program; on the thruster chain (55 x 65 = 3575) it
-#: answered later (25 s against 18-20 s), so there the program is prepared at the start.
+#: ((P - m) forward solves with P tangents each). Below it (the spherical robot's
+#: steering, 144; the 3-link chain's reorientation, 504) the first answer came sooner
+#: than by waiting for the reverse passes' program; above it (the thruster chain, 3575)
+#: later, so there the program is prepared at the start and waited for. (The timings
+#: are in the commit that set it.)
 SEQUENTIAL_TANGENTS = 1024
+
 
 class _Shooting(eqx.Module):
     """Single shooting: parameters -> (cost, terminal constraints), as one pytree."""
@@ -195,8 +197,8 @@ def _reduced_hessian(sh, z, g, Z, w, h, wait=True):
     reverse-mode gradient along the columns of Z (P - m reverse passes, vmapped; ``g``
     the gradient at z, which the iteration already has), or, with ``wait`` False and
     the reverse passes' program not ready, of the same gradient from the forward
-    sensitivities' Jacobian (module docstring). Only the reduced Hessian enters the null-space step,
-    so the directions of A's rows are not differenced."""
+    sensitivities' Jacobian (module docstring). Only the reduced Hessian enters the
+    null-space step, so the directions of A's rows are not differenced."""
     k = Z.shape[1]
     if k == 0:
         return np.zeros((0, 0))

@@ -858,6 +858,8 @@ def prepare(name: str, fn: Callable, args: tuple, error_mode: str | None = None,
 
 _LATER: dict = {}  # quick key -> future of the thread that traces a program (prepare_later)
 _LOADS: "weakref.WeakSet" = weakref.WeakSet()  # futures of background loads (not compiles)
+
+
 def _stored_key(name, fn, args, error_mode, compiler_options):
     """The in-process key of a program the cache can keep; None when the cache is off,
     an argument is traced or a static value is unhashable (then calls trace as usual)."""
