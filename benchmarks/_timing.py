@@ -1,4 +1,5 @@
-"""The one timing loop of the benchmarks: median wall time of a jax call."""
+"""The one timing loop of the benchmarks (median wall time of a jax call), and the wait
+for nhjax's background compiles before timing calls "after compile"."""
 
 import time
 
@@ -16,3 +17,12 @@ def median_time(fn, repeats=5, min_total=0.3, max_repeats=200):
         jax.block_until_ready(fn())
         ts.append(time.perf_counter() - t)
     return float(np.median(ts))
+
+
+def settle():
+    """Wait for nhjax's background work on programs (``nhjax._programs.settle``), so that
+    calls timed after a first one measure the solver with all its programs (a first
+    ``solve_direct_newton`` leaves its Hessian's program to a background thread)."""
+    from nhjax import _programs
+
+    _programs.settle()

@@ -76,14 +76,6 @@ CONFIGS = [  # (integrator, controls, N)
 OURS_REPEATS = 3
 
 
-def _settle():
-    """Wait for nhjax's background compiles (``nhjax._programs.settle``): the calls timed
-    after a first one measure the solver with all its programs."""
-    from nhjax import _programs
-
-    _programs.settle()
-
-
 def median_time(fn, repeats=5, min_total=0.5, max_repeats=50):
     ts, out, start = [], None, time.perf_counter()
     while len(ts) < repeats or (time.perf_counter() - start < min_total and len(ts) < max_repeats):
@@ -285,7 +277,9 @@ def report_first_answer(task, t_import, solve, reference=None):
     first = time.perf_counter() - t
     first_cpu = time.process_time()  # CPU of this process (all threads) up to the first answer
     ref = rest[0] if rest and rest[0] is not None else reference
-    _settle()  # after compile: the solver's background compiles done too
+    from _timing import settle
+
+    settle()  # after compile: the solver's background compiles done too
     after = []
     for _ in range(2):
         t = time.perf_counter()

@@ -88,14 +88,6 @@ OURS_REPEATS = 3
 COLD_REPEATS = 3
 
 
-def _settle():
-    """Wait for nhjax's background compiles (``nhjax._programs.settle``): the calls timed
-    after a first one measure the solver with all its programs."""
-    from nhjax import _programs
-
-    _programs.settle()
-
-
 def median_time(fn, repeats=5, min_total=0.5, max_repeats=50):
     ts, out, start = [], None, time.perf_counter()
     while len(ts) < repeats or (time.perf_counter() - start < min_total and len(ts) < max_repeats):
@@ -213,7 +205,9 @@ def ours_rows(pontryagin=True):
             rows.append(dict(solver=name, method=method, status=f"failed: {type(e).__name__}: {e}"))
             return None, None
         first_s = time.perf_counter() - t
-        _settle()  # after compile: the solver's background compiles done too
+        from _timing import settle
+
+        settle()  # after compile: the solver's background compiles done too
         sec, r = median_time(fn, repeats=OURS_REPEATS, min_total=0.0)
         row = dict(solver=name, method=method, cost=float(r.cost), violation=float(r.violation),
                    iterations=int(r.iterations), status="converged" if r.converged else r.message,
