@@ -126,6 +126,11 @@ def stack_members(members, *, owner: str = "stack_members", what: str = "member"
         leaves, tree = jtu.tree_flatten_with_path(member)
         paths0, paths = [p for p, _ in leaves0], [p for p, _ in leaves]
         if paths != paths0:
+            other = _first_type_difference(member, first)
+            if other is not None:  # e.g. another system class: say which, not the first leaf that moved
+                where, ta, tb = other
+                raise GridError(f"{owner}: {what} {i}'s {where} is a {ta}, {what} 0's a {tb}: a batch holds "
+                                "problems of one structure (the same classes; they may differ in numbers only)")
             diff = next((a for a, b in zip(paths, paths0) if a != b), None)
             where = _path_name(diff) if diff is not None else f"{len(paths)} leaves against {len(paths0)}"
             raise GridError(f"{owner}: {what} {i} differs from {what} 0 in structure at {where}: a batch holds "
@@ -154,6 +159,30 @@ def _same(a, b) -> bool:
         return bool(a == b)
     except Exception:  # noqa: BLE001 (an object without a truthy ==: compare identity)
         return a is b
+
+
+def _first_type_difference(a, b, path=""):
+    """(path, type of a, type of b) at the first node, walking the fields of modules and
+    dataclasses and the entries of dicts, lists and tuples in order, where a and b are
+    of different classes (two numbers of different kinds do not count: they may differ);
+    None if there is none."""
+    if _is_number(a) and _is_number(b):
+        return None
+    if type(a) is not type(b):
+        return path or "(the member itself)", type(a).__name__, type(b).__name__
+    if dataclasses.is_dataclass(a):
+        items = [(f".{f.name}", getattr(a, f.name, None), getattr(b, f.name, None)) for f in dataclasses.fields(a)]
+    elif isinstance(a, dict) and list(a) == list(b):
+        items = [(f"[{k!r}]", a[k], b[k]) for k in a]
+    elif isinstance(a, (list, tuple)) and len(a) == len(b):
+        items = [(f"[{j}]", x, y) for j, (x, y) in enumerate(zip(a, b))]
+    else:
+        return None
+    for name, x, y in items:
+        found = _first_type_difference(x, y, path + name)
+        if found is not None:
+            return found
+    return None
 
 
 def _first_static_difference(a, b) -> str:

@@ -92,12 +92,14 @@ def test_each_member_is_its_own_solve_and_the_loop_members_are_exact():
 
 
 def test_members_that_differ_in_structure_are_refused_by_name():
-    """Another state size (a torque-driven cat) or another type is a GridError naming
-    the member, raised before anything is traced."""
+    """Another system (a torque-driven cat: another class and state size) or another type
+    is a GridError naming the member and the field whose class differs, raised before
+    anything is traced."""
     cat = FallingCatKinematic()
     chart = velocity_somersault_chart(cat, 0.6, -np.pi, T)
     torque = torque_somersault(FallingCat(), 0.6, -np.pi, T)
-    with pytest.raises(controls.GridError, match="problem 1"):
+    with pytest.raises(controls.GridError, match=r"problem 1's \.system is a FallingCat, problem 0's a "
+                                                 r"FallingCatKinematic"):
         controls.solve_pontryagin_batch([chart, torque], progress=False)
     with pytest.raises(controls.ProblemError, match="member 1 is a str"):
         controls.solve_pontryagin_batch([chart, "not a problem"], progress=False)
