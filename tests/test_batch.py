@@ -10,7 +10,7 @@ import pytest
 
 import nhjax
 from nhjax.mechanics import Lagrangian
-from nhjax.scenes import FallingCat
+from nhjax.scenes import BouncingBall, FallingCat
 
 CTRL = nhjax.Sinusoids([-0.015, 0.0], [0.04, 0.02], [1.7, 0.9], [0.0, np.pi / 2])
 
@@ -70,12 +70,30 @@ def test_bad_members_are_named():
 
 
 def test_input_errors():
+    """Bad batch arguments are named errors of simulate_batch (both paths: the cat's
+    lock-step chunks and the impact batch), raised before any numerics."""
     cat = FallingCat()
     X = jnp.tile(cat.initial_state(0.8), (4, 1))
-    with pytest.raises(ValueError, match="disagree on the batch size"):
+    with pytest.raises(nhjax.ParameterError, match="simulate_batch: batched arguments disagree on the batch size"):
         nhjax.simulate_batch(nhjax.stack([cat, cat]), X, 1.0, in_axes={"system": 0, "x0": 0})
-    with pytest.raises(ValueError, match="in_axes keys"):
+    with pytest.raises(nhjax.ParameterError, match="simulate_batch: in_axes keys"):
         nhjax.simulate_batch(cat, X, 1.0, in_axes={"params": 0})
+    with pytest.raises(nhjax.ParameterError, match=r"in_axes\['x0'\] must be 0 .* or None"):
+        nhjax.simulate_batch(cat, X, 1.0, in_axes={"x0": 1})
+    with pytest.raises(nhjax.ParameterError, match="the batch has no members"):
+        nhjax.simulate_batch(cat, X[:0], 1.0)
+    # one state where a batch is expected: its 5 numbers are not 5 members
+    with pytest.raises(nhjax.StateError, match=r"x0 \(shape \(5,\)\) is one state of FallingCat, not a batch"):
+        nhjax.simulate_batch(cat, X[0], 1.0)
+    for bad in (0, 1.5):
+        with pytest.raises(nhjax.ParameterError, match="workers must be"):
+            nhjax.simulate_batch(cat, X, 1.0, workers=bad)
+    ball = BouncingBall()
+    B = np.stack([ball.initial_state(h) for h in (0.1, 0.2)])
+    with pytest.raises(nhjax.ParameterError, match="the batch has no members"):
+        nhjax.simulate_batch(ball, B[:0], 1.0)
+    with pytest.raises(nhjax.ParameterError, match="workers must be at least 1"):
+        nhjax.simulate_impacts_batch(ball, B, 1.0, workers=0)
     with pytest.raises(MemoryError, match="save fewer times"):
         nhjax.simulate_batch(cat, jnp.tile(X, (250_000, 1)), 1.0, saveat=10_000)
 

@@ -61,6 +61,7 @@ from .._validate import (
     time_span,
 )
 from .. import _programs
+from ..errors import ParameterError, StateError
 from . import progress as progress_meter
 from ._batch_types import BAD_X0, GUARD, MAX_STEPS, NONFINITE, OK, SOLVER, BatchError, BatchTrajectory
 from .impacts import simulate_batch_impacts
@@ -82,28 +83,54 @@ from .simulate import (
 __all__ = ["simulate_batch_local"]
 
 
-def _batch_size(args, axes):
+def _batch_size(args, axes, in_axes, owner):
+    """The number of members: the common leading size of the batched arguments' arrays
+    (ParameterError naming the argument when one has none or they disagree; none at
+    all is refused too)."""
     sizes = {}
     for name, arg, ax in zip(("system", "x0", "control"), args, axes):
         if ax is None:
             continue
         leaves = [a for a in jtu.tree_leaves(arg) if hasattr(a, "shape")]
         if not leaves:
-            raise ValueError(f"in_axes marks '{name}' as batched but it has no arrays")
+            raise ParameterError(f"{owner}: in_axes marks '{name}' as batched but it has no arrays", "in_axes",
+                                 in_axes)
         for a in leaves:
             if a.ndim == 0:
-                raise ValueError(
-                    f"'{name}' is batched but has a scalar leaf: every array needs the batch "
+                raise ParameterError(
+                    f"{owner}: '{name}' is batched but has a scalar leaf: every array needs the batch "
                     "axis. Build the batch with nhjax.stack([member, ...]) or "
-                    "equinox.filter_vmap(lambda p: Scene(param=p))(params)"
-                )
+                    "equinox.filter_vmap(lambda p: Scene(param=p))(params)", "in_axes", in_axes)
             sizes.setdefault(a.shape[0], name)
     if len(sizes) != 1:
-        raise ValueError(
-            "batched arguments disagree on the batch size: "
-            + ", ".join(f"{n} has {b}" for b, n in sizes.items())
-        )
-    return next(iter(sizes))
+        raise ParameterError(
+            f"{owner}: batched arguments disagree on the batch size: "
+            + ", ".join(f"{n} has {b}" for b, n in sizes.items()), "in_axes", in_axes)
+    B = next(iter(sizes))
+    if B == 0:
+        raise ParameterError(f"{owner}: the batch has no members ({sizes[0]} has a leading axis of length 0): "
+                             "pass at least one", sizes[0])
+    return B
+
+
+def _refuse_single_state(system, x0, owner):
+    """StateError when ``x0``, batched along axis 0, is one state of ``system`` and its
+    rows are not (a single member's shape): they would be taken as members of the
+    wrong shape. (A system whose states may have any shape passes both tests: nothing
+    is refused here.)"""
+    try:
+        check_state(system, x0, owner=owner)
+    except StateError:
+        return  # not a single state: the members' shapes are checked as usual
+    try:
+        check_state(system, _take(x0, 0, 0), owner=owner)
+        return
+    except (StateError, IndexError):
+        pass
+    shape = f"shape {tuple(np.shape(x0))}" if hasattr(x0, "shape") else "a single state"
+    raise StateError(f"{owner}: x0 ({shape}) is one state of {type(system).__name__}, not a batch: pass one row per "
+                     "member, a leading member axis (x0[None] for a batch of one), or in_axes={'x0': None} to give "
+                     "every member this start", "x0")
 
 
 def _take(tree, ax, sl):
@@ -350,16 +377,22 @@ def simulate_batch_local(
     axes_d = {"x0": 0} if in_axes is None else dict(in_axes)
     unknown = set(axes_d) - {"system", "x0", "control"}
     if unknown:
-        raise ValueError(f"in_axes keys must be among 'system', 'x0', 'control'; got {sorted(unknown)}")
+        raise ParameterError(f"{owner}: in_axes keys must be among 'system', 'x0', 'control'; got "
+                             f"{sorted(unknown)}", "in_axes", in_axes)
     for k, v in axes_d.items():
         if v not in (0, None):
-            raise ValueError(f"in_axes['{k}'] must be 0 or None, got {v}")
+            raise ParameterError(f"{owner}: in_axes['{k}'] must be 0 (batched along axis 0) or None (shared), "
+                                 f"got {v!r}", "in_axes", in_axes)
     x0 = as_state(system, x0, owner=owner, xp=np)
     axes = (axes_d.get("system"), axes_d.get("x0"), axes_d.get("control"))
-    B = _batch_size((system, x0, control), axes)
+    if axes[1] == 0:
+        _refuse_single_state(system, x0, owner)
+    B = _batch_size((system, x0, control), axes, in_axes, owner)
     if lanes is not None:
         lanes = integer("lanes", lanes, minimum=1, owner=owner)
     chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
+    if workers is not None:
+        workers = integer("workers", workers, minimum=1, owner=owner, what="concurrent chunks")
 
     # Static checks on one member (structure, shapes, control signature); the values of
     # every member are checked inside the chunks (member_report).
@@ -393,7 +426,6 @@ def simulate_batch_local(
     devices = jax.local_devices()
     if workers is None:
         workers = len(devices) if len(devices) > 1 else (2 if (os.cpu_count() or 1) >= 2 else 1)
-    workers = max(1, int(workers))
     capacity, size, starts = _plan(B, workers, chunk_size)
     if progress is None:
         progress = len(starts) > 4

@@ -1364,7 +1364,11 @@ def _batch_axes(system, x0, in_axes, owner):
     if len(sizes) != 1:
         raise ParameterError(f"{owner}: batched inputs must share one batch size; got sizes {sorted(sizes)} "
                              "(check in_axes: which of system / x0 carry a leading member axis)", "in_axes", in_axes)
-    return sys_axes, x_axis, sizes.pop()
+    B = sizes.pop()
+    if B == 0:
+        raise ParameterError(f"{owner}: the batch has no members (a leading member axis of length 0): pass at "
+                             "least one", "x0" if x_axis is not None else "system")
+    return sys_axes, x_axis, B
 
 
 def _members_of(system, x0, sys_axes, x_axis, idx):
@@ -1424,6 +1428,8 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
     if chunk_size is not None:
         chunk_size = integer("chunk_size", chunk_size, minimum=1, owner=owner)
     lanes = integer("lanes", lanes, minimum=1, owner=owner)
+    if workers is not None:
+        workers = integer("workers", workers, minimum=1, owner=owner, what="concurrent chunks")
     if not (isinstance(saveat, (int, np.integer)) and not isinstance(saveat, bool) and saveat == 0):
         check_saveat(saveat, t0, t1, owner=owner)
     _check_settings(owner, constraint_tol=constraint_tol, **options)
@@ -1452,7 +1458,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
         options["dtmax"] = getattr(sys0, "event_resolution", None)
     opts = {k_: (to_device(v) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
-    workers = int(workers or os.cpu_count() or 1)
+    workers = (os.cpu_count() or 1) if workers is None else workers
     t1a = to_device(t1)
 
     def run_members(system, x0, B):
