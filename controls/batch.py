@@ -519,7 +519,8 @@ class DirectBatchResult(_Statuses):
     iterations : (B,) SQP iterations each member took.
     status : (B,) one of ``DIRECT_STATUSES``: "converged"; "max_iterations";
         "stalled" (the line search found no decrease); "infeasible" (the linearized
-        terminal constraints cannot be met within the control bounds); "non_finite"
+        terminal constraints cannot be met: within the control bounds, or at all where
+        their Jacobian is rank deficient at the member's point); "non_finite"
         (the cost or constraints, or their derivatives, are not finite or all zero at
         the member's guess); "non_finite_input" (NaN/inf in its numbers or guess: not
         run). ``converged`` (B,) bool is status == "converged".

@@ -227,6 +227,27 @@ def parameter_bounds(ocp: OCP, param):
     return tuple(np.asarray(a, float) for a in param.param_bounds(ocp.u_lower, ocp.u_upper))
 
 
+def _no_qp_step_message(A, lo, hi, z):
+    """Why the QP has no step: its linearized terminal constraints A d = -psi cannot be
+    met, within the control bounds if there are any; without bounds only when the rows
+    of A are dependent (a rank below m), e.g. at a guess where some constraints do not
+    move at first order (zero inputs: where every input's effect on the turn passes
+    through the shape's motion)."""
+    bounded = bool(np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)))
+    m = A.shape[0]
+    sv = np.linalg.svd(A, compute_uv=False) if m else np.zeros(0)
+    rank = int(np.sum(sv > 1e-10 * max(sv.max(initial=0.0), 1e-300)))
+    if bounded:
+        at = int(np.sum((z <= lo) | (z >= hi)))
+        return ("the linearized terminal constraints cannot be met within the control bounds (the QP has no "
+                f"solution; {at} of {z.shape[0]} parameters at a bound, constraint Jacobian of rank {rank} of "
+                f"{m}): the target may be unreachable within the bounds or the horizon")
+    return (f"the linearized terminal constraints are inconsistent at this point: their Jacobian has rank {rank} "
+            f"of {m} (the QP has no solution; there are no control bounds), so some constraints do not move at "
+            "first order here, as at a guess of zero inputs when the constraints move only through the motion: "
+            "start from a guess that moves the system (e.g. param.fit of a plain motion)")
+
+
 def sqp_iteration(z, lo, hi, hessian, ctol, gtol, ftol, max_iter, t_start, report=None):
     """The SQP iteration of ``solve_direct_sqp`` from ``z`` (inside [lo, hi]) as a
     generator: it yields each point where it needs (J, psi) and their Jacobian D (rows
@@ -262,8 +283,7 @@ def sqp_iteration(z, lo, hi, hessian, ctol, gtol, ftol, max_iter, t_start, repor
         d, yq, zl, zu = qp_box(B, g, A, -c, lo - z, hi - z)
         if not (np.all(np.isfinite(d)) and np.all(np.isfinite(yq))) or (
                 m and np.abs(A @ d + c).max() > 1e-8 * max(1.0, np.abs(c).max())):
-            msg = ("the linearized terminal constraints cannot be met within the control bounds (the QP "
-                   "has no solution): the target may be unreachable within the bounds or the horizon")
+            msg = _no_qp_step_message(A, lo, hi, z)
             break
         # parameters the QP holds at a bound (active, with a positive multiplier)
         at_bound = ((z + d - lo <= 1e-9 * np.maximum(1.0, np.abs(lo))) & (zl > 1e-10)) | (

@@ -73,6 +73,17 @@ def test_somersault_direct_and_pontryagin_agree(chart_cat, chart_optimum):
     # the two optimal controls coincide along the motion
     us = jax.vmap(lambda t: d.control(t, None))(jnp.asarray(ind.trajectory.ts))
     np.testing.assert_allclose(us, ind.controls, atol=5e-4 * np.abs(ind.controls).max())
+    # from zero inputs the turn and the twist move at first order only through the same
+    # integral of u2 (psi' = -f(theta0) chi'), so the constraints' Jacobian there has rank
+    # 2 of 3: the SQP stops at once and says so (there are no bounds to blame)
+    zero = controls.solve_direct(ocp, param, jnp.zeros(param.size))
+    assert not zero.converged and zero.iterations == 0
+    assert "rank 2 of 3" in zero.message and "no control bounds" in zero.message, zero.message
+    from controls.newton import _Shooting, _values_and_jacobian
+    _, D = _values_and_jacobian(_Shooting(ocp, param, controls.problem.host_array(1e-10),
+                                          controls.problem.host_array(1e-10)), np.zeros(param.size))
+    sv = np.linalg.svd(np.asarray(D)[1:], compute_uv=False)
+    assert sv[1] > 1e-3 * sv[0] and sv[2] < 1e-12 * sv[0], sv
 
 
 
