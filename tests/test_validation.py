@@ -46,6 +46,22 @@ def test_user_lagrangian_with_a_state_of_the_wrong_length():
         Lagrangian(n=1, T=3.0)
     with pytest.raises(E.ParameterError, match="no force"):
         Lagrangian(n=1, T=lambda q, qd: qd @ qd, control_dim=1)
+    # outputs of the wrong shape, named at construction (autodiff would fail deep inside
+    # the derivation of the equations with JAX's own words)
+    with pytest.raises(E.ParameterError, match=r"T\(q, qd\) must return the kinetic energy, a scalar.*shape \(2,\)"):
+        Lagrangian(n=2, T=lambda q, qd: 0.5 * qd**2)
+    with pytest.raises(E.ParameterError, match=r"V\(q\) must return the potential energy"):
+        Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: q)
+    with pytest.raises(E.ParameterError, match=r"force\(t, q, qd, u\) must return the generalized force, shape "
+                                               r"\(2,\); it returns shape \(1,\)") as err:
+        Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, force=lambda t, q, qd, u: u, control_dim=1)
+    assert err.value.name == "force"
+    with pytest.raises(E.ParameterError, match="velocity_constraints.*a vector"):
+        Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, velocity_constraints=lambda t, q, qd: jnp.outer(qd, qd))
+    with pytest.raises(E.ParameterError, match="invariant 'p'"):
+        Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, invariants={"p": lambda q, qd: qd})
+    # a function abstract evaluation cannot read is left to the solve (not refused here)
+    Lagrangian(n=1, T=lambda q, qd: 0.5 * float(qd[0]) ** 2)
 
 
 def test_lie_lagrangian_velocity_of_the_wrong_length_and_off_group_poses():

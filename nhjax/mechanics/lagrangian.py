@@ -377,6 +377,43 @@ def _invariant_table(owner, arg, table):
     return tuple(out)
 
 
+def _output_shape(fn, *args):
+    """The shape of ``fn(*args)`` by abstract evaluation (nothing runs), or None when it
+    cannot be told here (the function fails on placeholder arguments, or returns
+    something other than one array): the solve then reports what goes wrong."""
+    try:
+        out = jax.eval_shape(fn, *args)
+    except Exception:  # noqa: BLE001 - whatever it is, the solve meets it with its own words
+        return None
+    return tuple(out.shape) if isinstance(out, jax.ShapeDtypeStruct) else None
+
+
+def _check_outputs(owner, n, k, *, T, V, velocity_constraints, position_constraints, force, invariants):
+    """ParameterError naming the function whose output has the wrong shape for n
+    coordinates and k inputs (read off abstract evaluations: checked once, at
+    construction, instead of failing inside autodiff's derivation of the equations)."""
+    q = jax.ShapeDtypeStruct((n,), jnp.float64)
+    t = jax.ShapeDtypeStruct((), jnp.float64)
+    u = jax.ShapeDtypeStruct((k,), jnp.float64)
+    checks = [("T", T, (q, q), "T(q, qd) must return the kinetic energy, a scalar [J]", lambda s: s == ()),
+              ("V", V, (q,), "V(q) must return the potential energy, a scalar [J]", lambda s: s == ()),
+              ("velocity_constraints", velocity_constraints, (t, q, q),
+               "velocity_constraints(t, q, qd) must return a vector (m,) of constraint values", lambda s: len(s) <= 1),
+              ("position_constraints", position_constraints, (t, q),
+               "position_constraints(t, q) must return a vector (k,) of constraint values", lambda s: len(s) <= 1),
+              ("force", force, (t, q, q, u), f"force(t, q, qd, u) must return the generalized force, shape ({n},)",
+               lambda s: s == (n,))]
+    checks += [("invariants", fn, (q, q), f"invariant {name!r}: fn(q, qd) must return a scalar", lambda s: s == ())
+               for name, fn in invariants]
+    for name, fn, args, what, ok in checks:
+        if fn is None:
+            continue
+        shape = _output_shape(fn, *args)
+        if shape is not None and not ok(shape):
+            raise ParameterError(f"{owner}: {what}; it returns shape {shape} (with n = {n} coordinates"
+                                 f"{f' and {k} inputs' if name == 'force' else ''})", name, fn)
+
+
 class Lagrangian(ConstrainedLagrangian):
     """A ConstrainedLagrangian from plain functions (quick user-defined systems).
 
@@ -439,6 +476,9 @@ class Lagrangian(ConstrainedLagrangian):
                 f"{owner}: control_dim={self.n_controls} but no force(t, q, qd, u) to feed the inputs into; "
                 "pass force=... or control_dim=0", "control_dim", control_dim)
         self.baumgarte = baumgarte_pair(owner, baumgarte)
+        _check_outputs(owner, self.n, self.n_controls, T=T, V=V, velocity_constraints=velocity_constraints,
+                       position_constraints=position_constraints, force=force,
+                       invariants=self.user_invariants + self.user_free_invariants)
 
     @property
     def control_dim(self):  # type: ignore[override]
