@@ -6,6 +6,7 @@ period-1 bouncer, a chaotic one) and in initial data, so lanes end at very diffe
 iteration counts and are refilled."""
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -180,3 +181,44 @@ def test_simulate_batch_signature_names_what_impacts_do_not_support():
         simulate_batch_impacts(ball, x0, T1, project=True)
     with pytest.raises(ValueError, match="in_axes keys"):
         simulate_batch_impacts(ball, x0, T1, in_axes={"control": 0})
+
+
+def test_lazy_cond_gives_each_lane_what_lax_cond_gives_it_and_skips_an_untaken_branch():
+    """lockstep.lazy_cond, which the impact batch's iteration uses for its branches: under
+    vmap (lanes first or last, nested, a closure over a batched value, a shared
+    predicate) every lane gets lax.cond's value; the true branch runs only in calls
+    where some lane takes it, where lax.cond under vmap runs it on every call (its
+    batched predicate becomes a select)."""
+    from nhjax.integrate.lockstep import lazy_cond
+
+    def f(cond, x, k):
+        y = jnp.sin(x) * k  # a batched value the branches close over
+        inner = lambda z: cond(z > 1.5, lambda w: w * 10.0, lambda w: w - y, z)  # noqa: E731
+        return cond(x > 0.0, inner, lambda z: -z * y, x), cond(k > 0.0, lambda z: z + 1.0, lambda z: z, y)
+
+    xs, ks = jnp.array([-1.0, 0.5, 2.0, 3.0]), jnp.array([1.0, -2.0, 3.0, 0.5])
+    want = jax.vmap(lambda x, k: f(jax.lax.cond, x, k))(xs, ks)
+    shared = jax.vmap(lambda x: f(jax.lax.cond, x, 2.0))(xs)  # k shared: its predicate too
+    for got, ref in ((jax.vmap(lambda x, k: f(lazy_cond, x, k))(xs, ks), want),
+                     (jax.jit(jax.vmap(lambda x, k: f(lazy_cond, x, k), in_axes=(-1, -1), out_axes=-1))(xs, ks), want),
+                     (jax.vmap(lambda x: f(lazy_cond, x, 2.0))(xs), shared)):
+        for g, w in zip(got, ref):
+            np.testing.assert_array_equal(np.asarray(g), np.asarray(w))
+    assert [float(v) for v in f(lazy_cond, 3.0, 0.5)] == [float(v) for v in f(jax.lax.cond, 3.0, 0.5)]
+
+    calls = []
+
+    def count(cond, x):
+        def costly(z):
+            jax.debug.callback(lambda: calls.append(1))
+            return z * 2.0
+        return cond(x > 10.0, costly, lambda z: z + 1.0, x)
+
+    for cond, xs_, taken in ((lazy_cond, jnp.arange(4.0), False), (lazy_cond, jnp.array([0.0, 20.0]), True),
+                             (jax.lax.cond, jnp.arange(4.0), True)):
+        calls.clear()
+        out = jax.jit(jax.vmap(lambda x: count(cond, x)))(xs_)
+        jax.block_until_ready(out)
+        jax.effects_barrier()
+        assert bool(calls) == taken, (cond, xs_, len(calls))
+        np.testing.assert_array_equal(np.asarray(out), np.where(np.asarray(xs_) > 10.0, 2 * xs_, xs_ + 1.0))

@@ -108,6 +108,7 @@ from .._validate import (check_saveat, choice, first_failures, integer, positive
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
 from ._batch_types import BatchError, MemberStatuses
+from .lockstep import lazy_cond
 from .simulate import _save_times
 from ..mechanics.impacts import (
     _contact_kkt,
@@ -402,7 +403,8 @@ def _ulp(t):
 
 def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10, dt0=None, dtmax=None,
              max_steps: int = 100_000, max_impacts: int = 1000, rest_velocity=1e-6, graze_tol=1e-12,
-             release_tol=1e-10, event_samples: int = 4, locate_iterations: int = 60, reverse: bool = False):
+             release_tol=1e-10, event_samples: int = 4, locate_iterations: int = 60, reverse: bool = False,
+             branch=jax.lax.cond):
     """The event loop of one member as pieces, a dict of functions:
 
     * ``init(x0) -> carry`` (the member's start: contact modes, controller, solver state);
@@ -416,7 +418,11 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
 
     ``solve_impacts`` runs them in one while loop (``reverse``: a checkpointed one); the
     lock-step batch (``_lockstep_chunk``) runs ``body`` on many lanes at once, writes the
-    rows straight into each member's slot and refills finished lanes with new members."""
+    rows straight into each member's slot and refills finished lanes with new members.
+    ``branch``: the conditional of the iteration's branches (``jax.lax.cond``; the lock-step
+    batch passes ``lockstep.lazy_cond``, which under its vmap over the lanes runs a
+    branch only in the iterations where some lane takes it, where ``lax.cond`` would run
+    both branches on every lane)."""
     solver = diffrax.Dopri5() if solver is None else solver
     if getattr(solver, "scan_kind", "") is None:
         # diffrax's default stage loop is a checkpointed while loop, which has no
@@ -672,7 +678,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         gaps, rates = jax.vmap(lambda tt: jax.jvp(gap_on_dense, (tt,), (jnp.ones((), dtype),)))(s_all)
         s = s_all[1:]
         xs_s = jnp.concatenate([jax.vmap(interp.evaluate)(s[:-1])[:, :-1], y1[None, :-1]], axis=0)
-        mus = jax.lax.cond(
+        mus = branch(
             jnp.any(persistent),
             lambda _: jax.vmap(lambda tt, xx: kkt(tt, xx, persistent)[2])(s, xs_s),
             lambda _: jnp.zeros((m, k), dtype), None)
@@ -720,7 +726,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             tm = 0.5 * (lo_ + hi_)
             return tm, gap_on_dense(tm)
 
-        t_min, gaps_min = jax.lax.cond(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
+        t_min, gaps_min = branch(has_dip, deepest, lambda _: (t_end, gaps[-1]), None)
         dipped = has_dip & (gaps_min[a_d] < -tol[a_d])
         found = crossed | dipped
         # The bracket's left end: the last sample before the first one below -graze_tol at
@@ -752,11 +758,11 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             tau, _, _ = jax.lax.fori_loop(0, 6, it, (hi, lo, hi))
             return jax.lax.stop_gradient(tau)
 
-        tau0 = jax.lax.cond(found & keep, guess, lambda _: hi, None)
+        tau0 = branch(found & keep, guess, lambda _: hi, None)
 
         def advance(c):
             o = dict(c)
-            y_new = jax.lax.cond(jnp.any(persistent), lambda yy: project(t_end, yy, persistent),
+            y_new = branch(jnp.any(persistent), lambda yy: project(t_end, yy, persistent),
                                  lambda yy: yy, y1)
             o["save_idx"], o["ys"] = save(c, t_end, interp)
             o["t"], o["y"], o["sstate"] = t_end, y_new, s1
@@ -781,7 +787,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             rejected["h"] = dt_next
             rejected["cstate"] = cstate1
             go = keep & ~found
-            res = jax.lax.cond(go, advance, lambda cc: cc, accepted)
+            res = branch(go, advance, lambda cc: cc, accepted)
             res = jax.tree_util.tree_map(lambda a, b: jnp.where(keep & found, a, b), start_locate, res)
             return jax.tree_util.tree_map(lambda a, b: jnp.where(keep, a, b), res, rejected)
 
@@ -808,10 +814,10 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             moving = dict(c)
             moving.update(lo=jax.lax.stop_gradient(lo_n), hi=jax.lax.stop_gradient(hi_n),
                           tau=jax.lax.stop_gradient(tau_n), iters=c["iters"] + 1)
-            return jax.lax.cond(conv, lambda cc: finalize(cc, t_end, y1, interp, G, Gp, e, x_dot),
+            return branch(conv, lambda cc: finalize(cc, t_end, y1, interp, G, Gp, e, x_dot),
                                 lambda cc: moving, c)
 
-        out = jax.lax.cond(locate, locating, stepping, out)
+        out = branch(locate, locating, stepping, out)
         out["status"] = jnp.where((out["status"] == 0) & ~jnp.all(jnp.isfinite(out["y"])), 3, out["status"])
         # no progress in time for _STALL iterations (e.g. a Zeno point with rest_velocity = 0)
         progressed = jax.lax.stop_gradient(out["t"]) > c["t_prog"] + 4 * _ulp(c["t_prog"])
@@ -1154,6 +1160,9 @@ def _lockstep_chunk_impl(system, x0, t1, n_members, sys_axes, x_axis, options, l
     R = max(1, L // 16)
     n_members = jnp.asarray(n_members, jnp.int32)
     lane = jnp.arange(L, dtype=jnp.int32)
+    # the branches of an iteration (a root find, a dip search, an impact) run only in the
+    # iterations where some lane takes them (lazy_cond; lax.cond would run them on every lane)
+    options = dict(options, branch=lazy_cond)
     mc0 = _machine(_member_of(system, sys_axes, 0), t1, **options)
 
     def parts(mem):
