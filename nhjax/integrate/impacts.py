@@ -763,7 +763,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         def advance(c):
             o = dict(c)
             y_new = branch(jnp.any(persistent), lambda yy: project(t_end, yy, persistent),
-                                 lambda yy: yy, y1)
+                           lambda yy: yy, y1)
             o["save_idx"], o["ys"] = save(c, t_end, interp)
             o["t"], o["y"], o["sstate"] = t_end, y_new, s1
             o["made_jump"] = jnp.any(persistent)
@@ -815,7 +815,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             moving.update(lo=jax.lax.stop_gradient(lo_n), hi=jax.lax.stop_gradient(hi_n),
                           tau=jax.lax.stop_gradient(tau_n), iters=c["iters"] + 1)
             return branch(conv, lambda cc: finalize(cc, t_end, y1, interp, G, Gp, e, x_dot),
-                                lambda cc: moving, c)
+                          lambda cc: moving, c)
 
         out = branch(locate, locating, stepping, out)
         out["status"] = jnp.where((out["status"] == 0) & ~jnp.all(jnp.isfinite(out["y"])), 3, out["status"])
