@@ -49,12 +49,12 @@ from __future__ import annotations
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
 import numpy as np
 import optimistix as optx
-from jax.custom_batching import custom_vmap
 
 from ..lie.spaces import AbstractSpace, Euclidean, is_space
 from .clip_floor import prev_floats
@@ -94,62 +94,23 @@ def vmap_lanes(f, in_axes):
     return wrapped
 
 
-def _branch_jaxpr(fn, flat_ops, tree):
-    """``fn`` on the flat operands as (jaxpr, its constants, output treedef): the values it
-    closes over (tracers of an enclosing vmap among them) become explicit inputs."""
-    closed, out_shape = jax.make_jaxpr(lambda *o: fn(*jtu.tree_unflatten(tree, o)), return_shape=True)(*flat_ops)
-    return closed.jaxpr, list(closed.consts), jtu.tree_structure(out_shape)
-
-
 def lazy_cond(pred, true_fn, false_fn, *operands):
     """``jax.lax.cond(pred, true_fn, false_fn, *operands)`` for code vmapped over lanes.
 
     Under ``jax.vmap`` with a per-lane predicate, ``lax.cond`` becomes a select: both
-    branches run on every lane at every call. Here the branches run vmapped as well, but
-    ``true_fn`` only when the predicate holds for some lane (its results are then
-    selected lane by lane), so a rarely taken, costly branch (an impact's root find, a
-    dip search) costs nothing in the steps where no lane takes it. Each lane gets what
-    ``lax.cond`` would give it. Without vmap, or with a shared predicate, it is a plain
-    ``lax.cond``. Not differentiable (``jax.custom_batching.custom_vmap``): for the
-    lock-step batches, which are not either. The branches are traced once, to jaxprs
-    evaluated by ``jax.core.eval_jaxpr`` (JAX's interpreter API, checked with jax 0.10)."""
-    flat, tree = jtu.tree_flatten(operands)
-    tj, tc, tout = _branch_jaxpr(true_fn, flat, tree)
-    fj, fc, fout = _branch_jaxpr(false_fn, flat, tree)
-    if tout != fout:
-        raise TypeError(f"lazy_cond: the branches return different structures, {tout} and {fout}")
+    branches run on every lane at every call. Here ``false_fn`` runs as before and
+    ``true_fn`` behind a conditional on whether the predicate holds for *some* lane
+    (``equinox.internal.unvmap_any``, a predicate that stays unbatched under vmap), its
+    results then selected lane by lane: a rarely taken, costly branch (an impact's root
+    find, a dip search) costs nothing in the steps where no lane takes it, and each lane
+    gets what ``lax.cond`` would give it. Without vmap both branches' work is that of a
+    ``lax.cond`` plus ``false_fn`` where the predicate holds: for vmapped code only."""
+    if_false = false_fn(*operands)
 
-    def run_true(consts, ops):
-        return jax.core.eval_jaxpr(tj, consts, *ops)
+    def with_true(if_false):
+        return jtu.tree_map(lambda a, b: jnp.where(pred, a, b), true_fn(*operands), if_false)
 
-    def run_false(consts, ops):
-        return jax.core.eval_jaxpr(fj, consts, *ops)
-
-    @custom_vmap
-    def select(pred, consts_t, consts_f, ops):
-        return jax.lax.cond(pred, lambda: run_true(consts_t, ops), lambda: run_false(consts_f, ops))
-
-    @select.def_vmap
-    def rule(axis_size, in_batched, pred, consts_t, consts_f, ops):
-        pred_b, tc_b, fc_b, ops_b = in_batched
-        axes = lambda batched: [0 if b else None for b in batched]  # noqa: E731
-        vtrue = jax.vmap(run_true, in_axes=(axes(tc_b), axes(ops_b)), axis_size=axis_size)
-        vfalse = jax.vmap(run_false, in_axes=(axes(fc_b), axes(ops_b)), axis_size=axis_size)
-        if not pred_b:
-            out = jax.lax.cond(pred, lambda: vtrue(consts_t, ops), lambda: vfalse(consts_f, ops))
-            return out, [True] * len(out)
-
-        # the false branch once, outside the conditional (one copy in the program)
-        if_false = vfalse(consts_f, ops)
-
-        def with_true(if_false):
-            return [jnp.where(jnp.reshape(pred, pred.shape + (1,) * (x.ndim - 1)), x, y)
-                    for x, y in zip(vtrue(consts_t, ops), if_false)]
-
-        out = jax.lax.cond(jnp.any(pred), with_true, lambda if_false: list(if_false), if_false)
-        return out, [True] * len(out)
-
-    return jtu.tree_unflatten(tout, select(pred, tc, fc, flat))
+    return jax.lax.cond(eqxi.unvmap_any(pred), with_true, lambda if_false: if_false, if_false)
 
 
 class _LanesSpace(AbstractSpace):
