@@ -117,3 +117,26 @@ def _table_compile_times(d) -> str:
         out.append(f"| {r['scene']} | {r['first_call_s']:.2f} s ({other:.2f} s) | {r['warm_first_call_s']:.2f} s "
                    f"| {_ms(r['run_s'])} | {steps} | {load} |")
     return "\n".join(out)
+
+
+def _table_impacts(d) -> str:
+    out = [_run(d["meta"]), "", "1000 impacts at rtol = atol = 1e-10, after compile (medians of interleaved rounds); "
+           "errors on the fixed floor against the closed form, on the vibrating table (chaotic) of each flight "
+           "against the exact parabola's root from the solver's own previous impact:", "",
+           *_head("case", "method", "impacts", "impact-time error [s]", "velocity error [m/s]", "time")]
+    for r in d["rows"]:
+        out.append(f"| {r['case']} | {r['method']} | {r['impacts']} | {_g(r['impact_time_error'], 2)} "
+                   f"| {_g(r['velocity_error'], 2)} | {_ms(r['seconds'])} |")
+    out += ["", "A batch of bouncers on the vibrating table (Gamma in [1.5, 4], 20 table periods, at most 200 "
+            "impacts each), `simulate_impacts_batch` on both cores after compile:", "",
+            *_head("members", "lanes per chunk", "time", "members/s", "impacts/s", "impact-time error [s]",
+                   "loop iterations min / median / max")]
+    for r in d["batch"]:
+        it = r["loop_iterations"]
+        out.append(f"| {r['members']} | {r['lanes']} | {r['seconds']:.2f} s | {r['members_per_second']:.0f} "
+                   f"| {r['impacts_per_second']:.0f} | {_g(r['impact_time_error'], 2)} "
+                   f"| {it['min']} / {it['median']:g} / {it['max']} |")
+    out += ["", "One impact solve (`jax.jit` of `solve_impacts`, 64 impacts), JAX's persistent cache off: " +
+            "; ".join(f"{name} traced and lowered in {c['trace_lower']:.2f} s, compiled in {c['compile']:.2f} s"
+                      for name, c in d["compile"].items()) + "."]
+    return "\n".join(out)
