@@ -104,6 +104,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
+from .._linalg import solve as small_solve
 from .._validate import (check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
@@ -116,6 +117,7 @@ from ..mechanics.impacts import (
     contact_kinematics,
     impact_geometry,
     restitution_of,
+    small_kkt,
 )
 
 __all__ = ["ImpactBatchTrajectory", "ImpactTrajectory", "STATUS", "simulate_batch_impacts", "simulate_impacts",
@@ -242,6 +244,28 @@ def _num_contacts(system, t0, x0):
     psi = jax.eval_shape(lambda t, x: jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n])),
                          jax.ShapeDtypeStruct((), jnp.float64), x0)
     return psi.shape[0]
+
+
+def _loop_options(system, t0, x0):
+    """XLA's settings for an event loop of ``system`` (x0: a member's state or its shape).
+
+    When its largest linear system, the contact KKT of n coordinates, m permanent and k
+    contact constraints, is small enough for the unrolled elimination
+    (``nhjax.mechanics.impacts.small_kkt``), the loop calls no LAPACK and XLA
+    compiles it into one function: then its quick settings (``QUICK_OPTIONS``: LLVM
+    unoptimized), under which that function compiles in less time than the kernels of
+    the loop did and still runs faster than they ran (benchmarks/compile_times.py,
+    benchmarks/impacts.py). Larger systems keep LAPACK, so their loop runs kernel by
+    kernel, and those kernels keep LLVM's optimization (``SOLVE_OPTIONS``)."""
+    return _programs.QUICK_OPTIONS if small_kkt(*_kkt_sizes(system, t0, x0)) else _programs.SOLVE_OPTIONS
+
+
+def _kkt_sizes(system, t0, x0):
+    """(n, m, k): coordinates, permanent velocity-level constraints and contacts of the
+    contact KKT (read off shapes: nothing runs)."""
+    q = jax.ShapeDtypeStruct((system.n,), jnp.float64)
+    m = jax.eval_shape(lambda qq: system.constraint_jacobian(jnp.zeros(()), qq), q).shape[0]
+    return system.n, m, _num_contacts(system, t0, x0)
 
 
 def _start_residuals(system, x0, t0):
@@ -433,7 +457,9 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     n = system.n
-    k = _num_contacts(system, t0, jnp.zeros(2 * n, dtype))
+    _, _, k = sizes = _kkt_sizes(system, t0, jnp.zeros(2 * n, dtype))
+    # the projection's solves as the contact dynamics' (mechanics.impacts._solver)
+    solve = small_solve if small_kkt(*sizes) else jnp.linalg.solve
     alpha = restitution_of(system, k)
     rest_velocity = jnp.asarray(rest_velocity, dtype)
     graze_tol = jnp.asarray(graze_tol, dtype)
@@ -564,7 +590,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
         w = persistent.astype(dtype)
         psi, J, _ = contact_kinematics(system, t, q, qd)
         Jm = J * w[:, None]
-        z = jnp.linalg.solve(Jm @ Jm.T + jnp.diag(1.0 - w), w * psi)
+        z = solve(Jm @ Jm.T + jnp.diag(1.0 - w), w * psi)
         q = q - Jm.T @ z
         M = system.mass_matrix(q)
         A = system.constraint_jacobian(t, q)
@@ -576,7 +602,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
             [J * w[:, None], jnp.zeros((k, mA), dtype), jnp.diag(1.0 - w)],
         ])
         rhs = jnp.concatenate([jnp.zeros(n, dtype), jnp.zeros(mA, dtype), -w * Psi])
-        qd = qd + jnp.linalg.solve(K, rhs)[:n]
+        qd = qd + solve(K, rhs)[:n]
         return jnp.concatenate([q, qd, y[-1:]])
 
     def residuals(t, x, persistent):
@@ -1111,11 +1137,9 @@ def simulate_impacts(
     args = (system, x0, arr(t1), arr(t0), ts, solver, arr(rtol), arr(atol), arr(dt0), arr(dtmax), int(max_steps),
             int(max_impacts), arr(rest_velocity), arr(graze_tol), arr(release_tol), int(event_samples), adjoint)
     if known:
-        # XLA's older loop emitters (SOLVE_OPTIONS): the event loop compiles in about half
-        # the time and runs no slower (benchmarks/compile_times.py)
         out = _primitive.call("impacts", _solve_plain, args, forward=functools.partial(_with_adjoint, "forward"),
                               reverse=functools.partial(_with_adjoint, "reverse"),
-                              options=_programs.SOLVE_OPTIONS, max_tangents=_MAX_TANGENTS,
+                              options=_loop_options(system, t0, x0), max_tangents=_MAX_TANGENTS,
                               fallback=lambda *a: _solve_plain_jit(*a))
         traj = ImpactTrajectory(**out, n=n, state_names=tuple(getattr(system, "state_names", ()) or ()))
     else:
@@ -1274,9 +1298,10 @@ def _lockstep_chunk_plain(*args):
     return {k: getattr(tr, k) for k in _FIELDS}
 
 
-def _lockstep_chunk(*args):
-    """``_lockstep_chunk_impl`` as a stored program (a new process loads it, traces nothing)."""
-    out = _programs.call("impacts-batch", _lockstep_chunk_plain, args, compiler_options=_programs.SOLVE_OPTIONS,
+def _lockstep_chunk(*args, compiler_options=None):
+    """``_lockstep_chunk_impl`` as a stored program (a new process loads it, traces nothing),
+    compiled with ``compiler_options`` (``_loop_options``)."""
+    out = _programs.call("impacts-batch", _lockstep_chunk_plain, args, compiler_options=compiler_options,
                          fallback=lambda *a: _lockstep_chunk_plain_jit(*a))
     system = args[0]
     return ImpactTrajectory(**out, n=system.n, state_names=tuple(getattr(system, "state_names", ()) or ()))
@@ -1467,6 +1492,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
         options["dtmax"] = getattr(sys0, "event_resolution", None)
     opts = {k_: (to_device(v) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
+    loop_options = _loop_options(sys0, t0, jax.ShapeDtypeStruct((2 * system.n,), jnp.float64))
     workers = (os.cpu_count() or 1) if workers is None else workers
     t1a = to_device(t1)
 
@@ -1488,7 +1514,7 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
             # its last member, which are not solved
             s, x = _members_of(system, x0, sys_axes, x_axis, perm[np.minimum(np.arange(lo, lo + chunk), B - 1)])
             return jax.device_get(_lockstep_chunk(s, x, t1a, np.int32(min(chunk, B - lo)), sys_axes, x_axis, opts,
-                                                  lanes))
+                                                  lanes, compiler_options=loop_options))
 
         first = run(starts[0])  # compile once, then the rest concurrently
         with ThreadPoolExecutor(max_workers=workers) as pool:

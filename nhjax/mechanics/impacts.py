@@ -75,6 +75,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._args import function, in_range
+from .._linalg import SMALL, solve as small_solve
 from ..errors import ParameterError
 from .lagrangian import ConstrainedLagrangian
 
@@ -141,23 +142,38 @@ def _permanent(system, t, q):
     return A, a
 
 
+def small_kkt(n: int, m: int, k: int) -> bool:
+    """Whether the contact KKT of n coordinates, m permanent and k contact constraints
+    (the largest linear system of an impact solve) is small enough for the unrolled
+    elimination (``nhjax._linalg.solve``); then every solve of the event loop is one, the
+    loop calls no LAPACK and XLA compiles it into one function."""
+    return n + m + k <= SMALL
+
+
+def _solver(M, A, J):
+    """The linear solve for an impact's systems (M n x n, A m x n, J k x n): the unrolled
+    elimination where ``small_kkt``, LAPACK (``jnp.linalg.solve``) otherwise."""
+    return small_solve if small_kkt(M.shape[0], A.shape[0], J.shape[0]) else jnp.linalg.solve
+
+
 def _projected_rows(M, A, a, J, j):
     """(beta, betabar): the impulsive rows projected along the permanent constraints
     (seed sec. 7: beta = Psi_kappa - C^AB Phi^A_kappa Phi^B_mu Psi_chi g^chi mu)."""
-    Minv_AT = jnp.linalg.solve(M, A.T) if A.shape[0] else None
+    solve = _solver(M, A, J)
+    Minv_AT = solve(M, A.T) if A.shape[0] else None
     if A.shape[0] == 0:
         return J, j
     C = A @ Minv_AT
     JMinvAT = J @ Minv_AT
-    X = jnp.linalg.solve(C.T, JMinvAT.T).T  # J M^-1 A^T C^-1
+    X = solve(C.T, JMinvAT.T).T  # J M^-1 A^T C^-1
     return J - X @ A, j - X @ a
 
 
-def _masked_solve(C, rhs, mask):
+def _masked_solve(C, rhs, mask, solve):
     """Solve C z = rhs on the rows/columns where mask is True; z = 0 elsewhere."""
     m = mask.astype(C.dtype)
     Cm = C * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
-    return jnp.linalg.solve(Cm, rhs * m) * m
+    return solve(Cm, rhs * m) * m
 
 
 def affine_projector(system, t, q, mask=None):
@@ -170,14 +186,15 @@ def affine_projector(system, t, q, mask=None):
     beta, betabar = _projected_rows(M, A, a, J, Psi0)
     k = J.shape[0]
     mask = jnp.ones(k, bool) if mask is None else jnp.asarray(mask, bool)
-    Minv_bT = jnp.linalg.solve(M, beta.T)
+    solve = _solver(M, A, J)
+    Minv_bT = solve(M, beta.T)
     Cp = beta @ Minv_bT
     m = mask.astype(M.dtype)
     Cm = Cp * m[:, None] * m[None, :] + jnp.diag(1.0 - m)
-    G = jnp.linalg.solve(Cm, (beta * m[:, None]))  # C'^-1 beta (masked rows)
+    G = solve(Cm, (beta * m[:, None]))  # C'^-1 beta (masked rows)
     n = q.shape[0]
     P = jnp.eye(n, dtype=M.dtype) - beta.T @ G @ jnp.linalg.inv(M)
-    c = -beta.T @ _masked_solve(Cp, betabar, mask)
+    c = -beta.T @ _masked_solve(Cp, betabar, mask, solve)
     return P, c
 
 
@@ -185,10 +202,11 @@ def _jump(M, A, a, J, j, qd, mask, alpha):
     """Velocities after an impact of the contacts in ``mask`` (restitution alpha (k,)),
     keeping A q' + a = 0; returns (qd1, mu) with mu the impulses (0 off the mask)."""
     beta, betabar = _projected_rows(M, A, a, J, j)
-    Minv_bT = jnp.linalg.solve(M, beta.T)
+    solve = _solver(M, A, J)
+    Minv_bT = solve(M, beta.T)
     Cp = beta @ Minv_bT
     rate = beta @ qd + betabar  # = Psi(v0) when A v0 + a = 0
-    nu = _masked_solve(Cp, (1.0 + alpha) * rate, mask)
+    nu = _masked_solve(Cp, (1.0 + alpha) * rate, mask, solve)
     qd1 = qd - Minv_bT @ nu
     return qd1, -nu
 
@@ -255,7 +273,7 @@ def _contact_kkt(system, t, q, qd, persistent, u=None):
     mid = jnp.concatenate([A, jnp.zeros((m, m + k), M.dtype)], axis=1)
     bot = jnp.concatenate([J * w[:, None], jnp.zeros((k, m), M.dtype), jnp.diag(1.0 - w)], axis=1)
     K = jnp.concatenate([top, mid, bot], axis=0)
-    sol = jnp.linalg.solve(K, jnp.concatenate([rhs, -b, -w * c]))
+    sol = _solver(M, A, J)(K, jnp.concatenate([rhs, -b, -w * c]))
     qdd, lam, mu = sol[:n], sol[n : n + m], sol[n + m :]
     if u is None:
         u = jnp.zeros((system.control_dim,), q.dtype)
