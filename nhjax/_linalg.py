@@ -10,9 +10,12 @@ extremal's loops compile as one function.
 
 ``solve`` is Gaussian elimination with partial pivoting (the algorithm of LAPACK's
 getrf/getrs, with its backward stability) in jnp operations, unrolled over the
-static size; above ``SMALL`` unknowns it is ``jnp.linalg.solve``. The mechanics
-engines keep LAPACK: their loops are too large to compile as one function anyway,
-and there the unrolled elimination made programs slower to compile and no faster.
+static size; above ``SMALL`` unknowns it is ``jnp.linalg.solve``. The impact solves
+of small systems use it too (``nhjax.mechanics.impacts.small_kkt``: a contact KKT of
+at most ``SMALL`` unknowns), so that their event loop compiles as one function. The
+Lagrange engine of ``simulate`` keeps LAPACK: its loops are too large to compile as one
+function anyway, and there the unrolled elimination made programs slower to compile
+and no faster.
 """
 
 from __future__ import annotations
