@@ -260,6 +260,10 @@ def _loop_options(system, t0, x0):
     return _programs.QUICK_OPTIONS if small_kkt(*_kkt_sizes(system, t0, x0)) else _programs.SOLVE_OPTIONS
 
 
+#: Most lanes of an impact batch compiled with XLA's quick settings (see _loop_options).
+_QUICK_LANES = 16
+
+
 def _kkt_sizes(system, t0, x0):
     """(n, m, k): coordinates, permanent velocity-level constraints and contacts of the
     contact KKT (read off shapes: nothing runs)."""
@@ -1492,7 +1496,11 @@ def simulate_impacts_batch(system, x0, t1, *, in_axes=None, chunk_size=None, lan
         options["dtmax"] = getattr(sys0, "event_resolution", None)
     opts = {k_: (to_device(v) if isinstance(v, float) else v) for k_, v in options.items()}
     opts["ts"] = ts
-    loop_options = _loop_options(sys0, t0, jax.ShapeDtypeStruct((2 * system.n,), jnp.float64))
+    # the quick settings only while the lanes' stepping loop stays small enough for XLA to
+    # compile it into one function (16 lanes of a ball do, 64 do not: their loop then runs
+    # kernel by kernel, and those kernels run faster optimized; benchmarks/impacts.py)
+    loop_options = (_loop_options(sys0, t0, jax.ShapeDtypeStruct((2 * system.n,), jnp.float64))
+                    if lanes <= _QUICK_LANES else _programs.SOLVE_OPTIONS)
     workers = (os.cpu_count() or 1) if workers is None else workers
     t1a = to_device(t1)
 
