@@ -104,7 +104,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
-from .._linalg import solve as small_solve
 from .._validate import (check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
@@ -116,6 +115,7 @@ from ..mechanics.impacts import (
     _impact_from_geometry,
     contact_kinematics,
     impact_geometry,
+    kkt_solve,
     restitution_of,
     small_kkt,
 )
@@ -266,10 +266,27 @@ _QUICK_LANES = 16
 
 def _kkt_sizes(system, t0, x0):
     """(n, m, k): coordinates, permanent velocity-level constraints and contacts of the
-    contact KKT (read off shapes: nothing runs)."""
+    contact KKT (read off shapes: nothing runs; kept per structure of the system, since
+    an eager simulate_impacts asks on every call)."""
+    leaves, treedef = jax.tree_util.tree_flatten(system)
+    # arrays and numbers by their shapes (values do not change the sizes), anything else
+    # (a function among the fields) by itself
+    key = (treedef, tuple(np.shape(a) if eqx.is_array_like(a) else a for a in leaves))
+    try:
+        return _KKT_SIZES[key]
+    except (KeyError, TypeError):  # TypeError: a static field that does not hash
+        pass
     q = jax.ShapeDtypeStruct((system.n,), jnp.float64)
     m = jax.eval_shape(lambda qq: system.constraint_jacobian(jnp.zeros(()), qq), q).shape[0]
-    return system.n, m, _num_contacts(system, t0, x0)
+    sizes = (system.n, m, _num_contacts(system, t0, x0))
+    try:
+        _KKT_SIZES[key] = sizes
+    except TypeError:
+        pass
+    return sizes
+
+
+_KKT_SIZES: dict = {}
 
 
 def _start_residuals(system, x0, t0):
@@ -462,8 +479,7 @@ def _machine(system, t1, *, t0=0.0, ts=None, solver=None, rtol=1e-10, atol=1e-10
     t1 = jnp.asarray(t1, dtype)
     n = system.n
     _, _, k = sizes = _kkt_sizes(system, t0, jnp.zeros(2 * n, dtype))
-    # the projection's solves as the contact dynamics' (mechanics.impacts._solver)
-    solve = small_solve if small_kkt(*sizes) else jnp.linalg.solve
+    solve = kkt_solve(*sizes)  # the projection's solves as the contact dynamics
     alpha = restitution_of(system, k)
     rest_velocity = jnp.asarray(rest_velocity, dtype)
     graze_tol = jnp.asarray(graze_tol, dtype)

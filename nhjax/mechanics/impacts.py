@@ -150,10 +150,15 @@ def small_kkt(n: int, m: int, k: int) -> bool:
     return n + m + k <= SMALL
 
 
+def kkt_solve(n: int, m: int, k: int):
+    """The linear solve for an impact's systems of these sizes: the unrolled elimination
+    where ``small_kkt``, LAPACK (``jnp.linalg.solve``) otherwise."""
+    return small_solve if small_kkt(n, m, k) else jnp.linalg.solve
+
+
 def _solver(M, A, J):
-    """The linear solve for an impact's systems (M n x n, A m x n, J k x n): the unrolled
-    elimination where ``small_kkt``, LAPACK (``jnp.linalg.solve``) otherwise."""
-    return small_solve if small_kkt(M.shape[0], A.shape[0], J.shape[0]) else jnp.linalg.solve
+    """``kkt_solve`` for M (n x n), A (m x n) and J (k x n)."""
+    return kkt_solve(M.shape[0], A.shape[0], J.shape[0])
 
 
 def _projected_rows(M, A, a, J, j):
