@@ -136,6 +136,20 @@ def stacked(values):
     return to_device(np.stack([np.asarray(v, float) for v in values]))
 
 
+def on_host(fn, *args):
+    """``fn(xp, *args)``: with ``xp = numpy`` on the host when no argument is traced (the
+    result, a pytree of arrays, then sent to the device as float64 by ``to_device``), with
+    ``xp = jax.numpy`` under a trace. For the few operations of a start state or of derived
+    parameters: each eager ``jnp`` operation is an XLA program of its own, compiled (or
+    looked up) in every new process before the first answer. ``args``: numbers and arrays
+    (or pytrees of them); ``fn`` uses only functions that numpy and jax.numpy share."""
+    leaves = jtu.tree_leaves(args)
+    if any(isinstance(v, jax.core.Tracer) for v in leaves):
+        return fn(jnp, *args)
+    host = jtu.tree_map(lambda v: np.asarray(v, float), args)
+    return jtu.tree_map(to_device, fn(np, *host))
+
+
 def _out(arr, as_float):
     if as_float:
         return float(arr)

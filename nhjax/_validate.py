@@ -91,6 +91,7 @@ from ._args import (  # noqa: F401
     _map_groups,
     MAX_PROJECTIONS,
     moment_triangle,
+    on_host,
     _path_name,
     positive,
     principal_moments,

@@ -152,3 +152,68 @@ def test_reduction_geometry_runs_as_stored_programs_equal_to_its_plain_functions
           for e in np.eye(2)]
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-9)
     assert _primitive.BOUND["call"] > before
+
+
+_SCENES_CHILD = """
+import json, sys
+import jax, numpy as np
+compiles = []  # every XLA compile of the process, by function name
+jax.monitoring.register_event_duration_secs_listener(
+    lambda name, secs, **kw: compiles.append(kw.get("fun_name", "?"))
+    if name == "/jax/core/compile/backend_compile_duration" else None)
+sys.path.insert(0, {here!r})
+import test_first_answers as t
+import nhjax.scenes
+del compiles[:]  # (the test module's own constants)
+built = t._scene_states(np)
+jax.jit(lambda x: x * {salt!r})(1.0).block_until_ready()  # the counter works: one compile seen
+print(json.dumps(dict(compiles=compiles, built=[np.concatenate([np.ravel(a) for a in jax.tree_util.tree_leaves(v)]).tolist()
+                                                for v in built])))
+"""
+
+
+def _scene_states(xp):
+    """Scenes and start states as a user builds them, from numbers (``xp`` = numpy) or
+    from traced values (``xp`` = jax.numpy, under jit): parameters derived in the
+    constructors and the start states' arithmetic."""
+    from nhjax.scenes import FallingCat, PlanarChain, RollingDisk, RollRing, Skate, SkateSE2, TwoWheeledCart
+
+    a = xp.asarray([0.3, -0.2, 0.7, 1.1, 0.4])
+    chain = PlanarChain(masses=xp.asarray([1.0, 2.0, 1.5]), lengths=xp.asarray([1.0, 0.8, 1.2]))
+    thrusters = PlanarChain(thruster_axes=xp.asarray([[1.0, 1.0], [0.0, 2.0], [3.0, 0.0]]))
+    cat = FallingCat.from_dimensions(a[4] + 0.6, a[2] + 0.3, a[3] / 4)
+    return [Skate().initial_state(a[0], a[1], a[2], a[3], a[4]),
+            SkateSE2().initial_state(a[0], a[1], a[2], a[3], a[4]),
+            RollingDisk().initial_state(a[0], a[1], a[2], 0.2 * a[3], a[4], a[0], a[1], a[2]),
+            TwoWheeledCart().initial_state(a[0], a[1], a[2], a[3], a[4], a[0], a[1]),
+            chain.initial_state(phi=a[0], phi_dot=a[1:3]),
+            (chain.bodies.inertias, chain.shape_map.hinge_out, chain.shape_map.hinge_in),
+            thrusters.inputs.thruster_axes,
+            (cat.I1, cat.lam, cat.B)]
+
+
+def test_scenes_and_start_states_from_numbers_compile_no_eager_programs_and_equal_the_traced_ones(tmp_path):
+    """Built from numbers in a new process, the scenes' derived parameters and start
+    states cost no XLA program (each eager jnp operation would be one, compiled or
+    looked up in every new process before the first answer): the arithmetic runs on
+    the host. The same constructors on traced values (jit) give the same arrays, and a
+    roll-ring start state (concrete only) satisfies its constraints."""
+    env = dict(os.environ, NHJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    code = _SCENES_CHILD.format(here=os.path.dirname(__file__), salt=float(np.random.default_rng().uniform(2, 3)))
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert len(out["compiles"]) == 1, out["compiles"]  # the counter's own probe, nothing else
+    traced = jax.jit(lambda: _scene_states(jnp))()
+    assert len(traced) == len(out["built"])
+    for host, jitted in zip(out["built"], traced):
+        flat = np.concatenate([np.ravel(a) for a in jax.tree_util.tree_leaves(jitted)])
+        np.testing.assert_allclose(host, flat, rtol=1e-14, atol=1e-15)
+    from nhjax.scenes import RollRing
+
+    ring = RollRing()
+    x = ring.initial_state(u_r=0.1, beta=0.3, u_s=0.2, alpha1=0.4, alpha2=-0.5, beta_dot=0.7, u_s_dot=0.3,
+                           alpha1_dot=-1.1, alpha2_dot=0.6)
+    n = (x.shape[0] - 2) // 2
+    q, qd = x[:n], x[n:2 * n]
+    assert np.max(np.abs(ring.position_constraints(0.0, q))) < 1e-14
+    assert np.max(np.abs(ring.velocity_constraints(0.0, q, qd))) < 1e-14

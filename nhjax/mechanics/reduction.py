@@ -173,7 +173,8 @@ class Symmetry(eqx.Module):
 
     def identity(self):
         """(R, c) of the identity."""
-        return (jnp.eye(3) if self.matrix else None), jnp.zeros(len(self.coord_names))
+        # (host arrays sent to the device: an eager jnp.eye/zeros is an XLA program of its own)
+        return (V.to_device(np.eye(3)) if self.matrix else None), V.to_device(np.zeros(len(self.coord_names)))
 
 
 class SO3(Symmetry):
@@ -363,7 +364,7 @@ class Bodies(eqx.Module):
         if m.ndim != 1 or m.shape[0] == 0:
             raise ParameterError(f"Bodies: masses must be a non-empty 1-D array [kg], got shape {m.shape}",
                                  "masses", masses)
-        if not isinstance(m, jax.core.Tracer) and not float(jnp.sum(m)) > 0:
+        if not isinstance(m, jax.core.Tracer) and not float(np.sum(np.asarray(m))) > 0:
             raise ParameterError(f"Bodies: masses must be >= 0 with a positive total, got {np.asarray(m)}",
                                  "masses", masses)
         n = m.shape[0]
@@ -642,7 +643,10 @@ class ReducedSystem(AbstractSystem):
 
     def join(self, R, c, r, rd, m=None):
         parts = [c, r, rd] + ([] if self.momentum == "zero" else [m])
-        f = jnp.concatenate([jnp.asarray(p, float).reshape(-1) for p in parts])
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(parts)):
+            f = jnp.concatenate([jnp.asarray(p, float).reshape(-1) for p in parts])
+        else:  # concrete parts (a start state): joined on the host, without an eager program
+            f = V.to_device(np.concatenate([np.asarray(p, float).reshape(-1) for p in parts]))
         return (R, f) if self.symmetry.matrix else f
 
     def initial_state(self, shape, shape_rate=None, group=None, momentum=None):
@@ -651,11 +655,11 @@ class ReducedSystem(AbstractSystem):
         momentum J (default 0; converted to mu for momentum='body')."""
         owner = f"{type(self).__name__}.initial_state"
         r = self._shape_arg("shape", shape, owner)
-        rd = jnp.zeros(self.k) if shape_rate is None else self._shape_arg("shape_rate", shape_rate, owner)
+        rd = V.to_device(np.zeros(self.k)) if shape_rate is None else self._shape_arg("shape_rate", shape_rate, owner)
         R, c = self._group_arg(group, owner)
         m = None
         if self.momentum != "zero":
-            J = jnp.zeros(self.symmetry.dim) if momentum is None else _vec_arg(
+            J = V.to_device(np.zeros(self.symmetry.dim)) if momentum is None else _vec_arg(
                 "momentum", momentum, self.symmetry.dim, owner, "spatial momentum J")
             m = J if self.momentum == "spatial" else self.symmetry.to_body(R, c, J)
         elif momentum is not None:

@@ -13,6 +13,7 @@ from .._validate import (  # noqa: F401
     in_range,
     inertia_tensor,
     integer,
+    on_host,
     positive,
     principal_moments,
     real,

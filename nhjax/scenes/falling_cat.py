@@ -141,11 +141,16 @@ class _CatGeometry(eqx.Module):
         mass = V.positive("mass", mass, owner=owner, what="mass of each cylinder [kg]")
         length = V.positive("length", length, owner=owner, what="length of each cylinder [m]")
         radius = V.positive("radius", radius, owner=owner, what="radius of each cylinder [m]")
-        l = length / 2 if joint_offset is None else V.positive(  # noqa: E741
+        l = None if joint_offset is None else V.positive(  # noqa: E741
             "joint_offset", joint_offset, owner=owner, what="joint to centre-of-mass distance [m]")
-        I1 = mass * (3 * radius**2 + length**2) / 12
-        I2 = mass * radius**2 / 2
-        return cls(I1=I1, lam=I2 / I1, B=mass * l**2 / I1, mass=mass, **kw)
+
+        def moments(xp, m, L, r, l):  # noqa: E741
+            l = L / 2 if l is None else l  # noqa: E741
+            I1 = m * (3 * r**2 + L**2) / 12
+            return I1, m * r**2 / 2 / I1, m * l**2 / I1
+
+        I1, lam, B = V.on_host(moments, mass, length, radius, l)
+        return cls(I1=I1, lam=lam, B=B, mass=mass, **kw)
 
     # --- geometry (6.6), connection (6.7), metric (7.3), curvature (7.13)
     def D(self, theta):

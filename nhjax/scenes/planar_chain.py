@@ -69,7 +69,7 @@ import numpy as np
 from ..errors import ParameterError
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics.reduction import SE2, SO2, Bodies, ReducedSystem, _rot2
-from ._validate import choice, positive, real
+from ._validate import choice, positive, real, to_device
 
 __all__ = ["PlanarChain", "PlanarChainUnreduced", "two_body_closed_forms"]
 
@@ -130,11 +130,14 @@ def _thruster_axes(owner, value, N):
     if ax.shape != (N, 2):
         raise ParameterError(f"{owner}: thruster_axes must have shape ({N}, 2), got {tuple(ax.shape)}",
                              "thruster_axes", value)
-    norm = jnp.linalg.norm(ax, axis=1, keepdims=True)
-    if not isinstance(norm, jax.core.Tracer) and not np.all(np.asarray(norm) > 0):
-        raise ParameterError(f"{owner}: thruster_axes must be nonzero directions, got {np.asarray(ax).tolist()}",
+    if isinstance(ax, jax.core.Tracer):
+        return ax / jnp.linalg.norm(ax, axis=1, keepdims=True)
+    ax = np.asarray(ax)
+    norm = np.linalg.norm(ax, axis=1, keepdims=True)
+    if not np.all(norm > 0):
+        raise ParameterError(f"{owner}: thruster_axes must be nonzero directions, got {ax.tolist()}",
                              "thruster_axes", value)
-    return ax / norm
+    return to_device(ax / norm)
 
 
 class PlanarChain(ReducedSystem):
@@ -153,15 +156,25 @@ class PlanarChain(ReducedSystem):
         owner = "PlanarChain"
         m = _masses(owner, masses)
         N = m.shape[0]
-        L = jnp.ones(N) if lengths is None else positive("lengths", lengths, owner=owner, shape=(N,),
-                                                         what="link lengths, one per body [m]")
-        if inertias is None:
-            inertias = m * L**2 / 12.0
-        else:  # zero: a point mass on the chain (its hinge offsets still give it rotational inertia)
+        L = None if lengths is None else positive("lengths", lengths, owner=owner, shape=(N,),
+                                                  what="link lengths, one per body [m]")
+        if inertias is not None:  # zero: a point mass on the chain (its hinge offsets still give it rotational inertia)
             inertias = positive("inertias", inertias, allow_zero=True, owner=owner, shape=(N,),
                                 what="moments of inertia about the centres of mass [kg m^2]")
-        ho = jnp.stack([L[:-1] / 2, jnp.zeros(N - 1)], 1) if hinge_out is None else _hinges(owner, "hinge_out", hinge_out, N)
-        hi = jnp.stack([-L[1:] / 2, jnp.zeros(N - 1)], 1) if hinge_in is None else _hinges(owner, "hinge_in", hinge_in, N)
+        ho = None if hinge_out is None else _hinges(owner, "hinge_out", hinge_out, N)
+        hi = None if hinge_in is None else _hinges(owner, "hinge_in", hinge_in, N)
+        # the defaults' arithmetic on the host when the parameters are concrete: each eager
+        # jnp operation is an XLA program of its own, compiled (or looked up) in every new
+        # process before the first answer; under a trace (a gradient in the masses) in jnp
+        xp = jnp if any(isinstance(a, jax.core.Tracer) for a in (m, L, inertias)) else np
+        L = xp.ones(N) if L is None else L
+        if inertias is None:
+            inertias = to_device(xp.asarray(m) * xp.asarray(L) ** 2 / 12.0)
+        Lh = xp.asarray(L)
+        if ho is None:
+            ho = to_device(xp.stack([Lh[:-1] / 2, xp.zeros(N - 1)], 1))
+        if hi is None:
+            hi = to_device(xp.stack([-Lh[1:] / 2, xp.zeros(N - 1)], 1))
         choice("reference", reference, ("first", "mean"), owner=owner)
         if not isinstance(thrusters, (bool, np.bool_)):
             raise ParameterError(f"{owner}: thrusters must be True or False, got {thrusters!r}", "thrusters", thrusters)
@@ -169,7 +182,7 @@ class PlanarChain(ReducedSystem):
             thrusters = True
             ax = _thruster_axes(owner, thruster_axes, N)
         else:
-            ax = jnp.tile(jnp.array([[1.0, 0.0]]), (N, 1)) if thrusters else None
+            ax = to_device(np.tile([[1.0, 0.0]], (N, 1))) if thrusters else None
         group = {"SE2": SE2(), "SO2": SO2()}.get(group, group) if isinstance(group, str) else group
         if not isinstance(group, (SE2, SO2)) or group.spatial:
             raise ParameterError(f"{owner}: group must be 'SE2' or 'SO2' (planar), got {group!r}", "group", group)
@@ -207,7 +220,7 @@ class PlanarChain(ReducedSystem):
             a = real(name, v, owner=owner, what=f"joint angles {self.shape_names} [rad]" if name == "phi"
                      else "joint rates [rad/s]")
             if a.ndim == 0:
-                a = jnp.full(self.k, a)
+                a = jnp.full(self.k, a) if isinstance(a, jax.core.Tracer) else to_device(np.full(self.k, np.asarray(a)))
             elif a.shape != (self.k,):
                 raise ParameterError(f"{owner}: {name} must have {self.k} entries (one per joint) or be one "
                                      f"number, got shape {tuple(a.shape)}", name, v)

@@ -86,7 +86,7 @@ import numpy as np
 
 from ..mechanics import ConstrainedLagrangian
 from ..mechanics._kkt import kkt_accelerations
-from ._validate import chart_argument, in_range, positive, real
+from ._validate import chart_argument, in_range, on_host, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollRing"]
@@ -115,6 +115,26 @@ def drive_profile(t):
 STATE_NAMES = ("u_r", "beta", "u_s", "v1", "v2", "alpha1", "w1", "w2", "alpha2",
                "u_r_dot", "beta_dot", "u_s_dot", "v1_dot", "v2_dot", "alpha1_dot", "w1_dot", "w2_dot", "alpha2_dot",
                "dissipated", "supplied")
+
+
+
+def _ring_state(xp, l1, l2, drive_speed, vals):
+    """``RollRing.initial_state``'s arithmetic (numpy on concrete numbers: ``on_host``)."""
+    b = vals["beta"]
+    a1, a2, s = vals["alpha1"], vals["alpha2"], vals["u_s"]
+    a1d, a2d, sd = vals["alpha1_dot"], vals["alpha2_dot"], vals["u_s_dot"]
+    e1, e2 = xp.stack([xp.sin(a1), -xp.cos(a1)]), xp.stack([xp.sin(a2), -xp.cos(a2)])
+    f1, f2 = xp.stack([xp.cos(a1), xp.sin(a1)]), xp.stack([xp.cos(a2), xp.sin(a2)])
+    p0 = xp.stack([s, 0.0 * s])
+    p0d = xp.stack([sd, 0.0 * sd])
+    v = p0 + 0.5 * l1 * e1
+    w = p0 + l1 * e1 + 0.5 * l2 * e2
+    vd = p0d + 0.5 * l1 * a1d * f1
+    wd = p0d + l1 * a1d * f1 + 0.5 * l2 * a2d * f2
+    q = xp.concatenate([xp.stack([vals["u_r"], b, s]), v, a1[None], w, a2[None]])
+    qd = xp.concatenate([xp.stack([drive_speed * xp.tan(b), vals["beta_dot"], sd]), vd, a1d[None], wd,
+                          a2d[None]])
+    return xp.concatenate([q, qd, xp.zeros(2)])
 
 
 class RollRing(ConstrainedLagrangian):
@@ -255,22 +275,9 @@ class RollRing(ConstrainedLagrangian):
         and rates (beta', u_s', alpha1', alpha2'): the bars' centres follow from the pivots,
         u_r' = c tan(beta) from (9.8); both ledgers start at zero."""
         owner = "RollRing.initial_state"
-        vals = {k: jnp.asarray(real(k, v, owner=owner, as_float=True), float) for k, v in (
+        vals = {k: real(k, v, owner=owner, as_float=True) for k, v in (
             ("u_r", u_r), ("beta", beta), ("u_s", u_s), ("alpha1", alpha1), ("alpha2", alpha2),
             ("beta_dot", beta_dot), ("u_s_dot", u_s_dot), ("alpha1_dot", alpha1_dot), ("alpha2_dot", alpha2_dot))}
         b = vals["beta"]
         chart_argument(self, "tilt", np.cos(float(b)) - self.chart_eps, owner=owner, name="beta")
-        a1, a2, s = vals["alpha1"], vals["alpha2"], vals["u_s"]
-        a1d, a2d, sd = vals["alpha1_dot"], vals["alpha2_dot"], vals["u_s_dot"]
-        e1, e2 = jnp.stack([jnp.sin(a1), -jnp.cos(a1)]), jnp.stack([jnp.sin(a2), -jnp.cos(a2)])
-        f1, f2 = jnp.stack([jnp.cos(a1), jnp.sin(a1)]), jnp.stack([jnp.cos(a2), jnp.sin(a2)])
-        p0 = jnp.stack([s, 0.0 * s])
-        p0d = jnp.stack([sd, 0.0 * sd])
-        v = p0 + 0.5 * self.l1 * e1
-        w = p0 + self.l1 * e1 + 0.5 * self.l2 * e2
-        vd = p0d + 0.5 * self.l1 * a1d * f1
-        wd = p0d + self.l1 * a1d * f1 + 0.5 * self.l2 * a2d * f2
-        q = jnp.concatenate([jnp.stack([vals["u_r"], b, s]), v, a1[None], w, a2[None]])
-        qd = jnp.concatenate([jnp.stack([self.drive_speed * jnp.tan(b), vals["beta_dot"], sd]), vd, a1d[None], wd,
-                              a2d[None]])
-        return jnp.concatenate([q, qd, jnp.zeros(2)])
+        return on_host(_ring_state, self.l1, self.l2, self.drive_speed, vals)

@@ -124,7 +124,7 @@ from .. import _programs
 from ..errors import ParameterError
 from ..lie import so3
 from ..mechanics import ConstrainedLagrangian
-from ._validate import chart_argument, axisymmetric_moments, in_range, positive, real
+from ._validate import chart_argument, axisymmetric_moments, in_range, on_host, positive, real
 from .ball_on_platter import baumgarte_gains
 
 __all__ = ["RollingDisk", "RollingDiskQuaternion"]
@@ -240,10 +240,10 @@ class RollingDisk(_DiskParams, ConstrainedLagrangian):
         x1, x2, phi, th, psi, phid, thd, psid = vals
         if not isinstance(th, jax.core.Tracer):
             chart_argument(self, "tilt", np.cos(np.asarray(th, float)) - self.chart_eps, owner=owner, name="theta")
-        return jnp.stack([
+        return on_host(lambda xp, r, x1, x2, phi, th, psi, phid, thd, psid: xp.stack([
             x1, x2, phi, th, psi,
-            self.r * psid * jnp.cos(phi), self.r * psid * jnp.sin(phi), phid, thd, psid,
-        ])  # fmt: skip
+            r * psid * xp.cos(phi), r * psid * xp.sin(phi), phid, thd, psid,
+        ]), self.r, *vals)  # fmt: skip
 
     def circular_rate(self, theta0, q):
         """Rolling rate s = psi' [rad/s] of the circular motion with tilt theta0 and

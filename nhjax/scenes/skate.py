@@ -74,9 +74,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ..lie import SE2Body, se2
+from ..lie import SE2Body
 from ..mechanics import ConstrainedLagrangian, LieLagrangian
-from ._validate import positive, real
+from ._validate import on_host, positive, real
 
 __all__ = ["Skate", "SkateSE2"]
 
@@ -123,7 +123,8 @@ class Skate(ConstrainedLagrangian):
         """State with contact point (u1, u2) [m], heading phi [rad], velocity
         ``speed`` [m/s] along the edge (negative: backwards) and spin phi_dot [rad/s]."""
         u1, u2, phi, v, w = _state_args(type(self).__name__, u1=u1, u2=u2, phi=phi, speed=speed, phi_dot=phi_dot)
-        return jnp.stack([u1, u2, phi, v * jnp.cos(phi), v * jnp.sin(phi), w])
+        return on_host(lambda xp, u1, u2, phi, v, w: xp.stack([u1, u2, phi, v * xp.cos(phi), v * xp.sin(phi), w]),
+                       u1, u2, phi, v, w)
 
     def speed(self, x):
         """Signed speed along the edge, v = u' . (cos phi, sin phi) [m/s]."""
@@ -214,9 +215,13 @@ class SkateSE2(LieLagrangian):
 
     def from_flat(self, x):
         """((g,), v) from a ``Skate`` state (u1, u2, phi, u1', u2', phi')."""
-        c, s = jnp.cos(x[2]), jnp.sin(x[2])
-        v = jnp.stack([x[3] * c + x[4] * s, -x[3] * s + x[4] * c, x[5]])
-        return (se2.from_xytheta(x[0], x[1], x[2]),), v
+        def parts(xp, x):
+            c, s = xp.cos(x[2]), xp.sin(x[2])
+            v = xp.stack([x[3] * c + x[4] * s, -x[3] * s + x[4] * c, x[5]])
+            g = xp.stack([xp.stack([c, -s, x[0]]), xp.stack([s, c, x[1]]), xp.stack([0.0 * c, 0.0 * c, 1.0 + 0.0 * c])])
+            return (g,), v
+
+        return on_host(parts, x)
 
     def to_flat(self, y):
         """``Skate`` states from ((g,), v), batched along a leading time axis or not

@@ -66,7 +66,7 @@ import jax
 import jax.numpy as jnp
 
 from ..mechanics import ConstrainedLagrangian
-from ._validate import positive, real
+from ._validate import on_host, positive, real
 
 __all__ = ["TwoWheeledCart"]
 
@@ -126,11 +126,11 @@ class TwoWheeledCart(ConstrainedLagrangian):
         x1, x2, th, pl, pr, v, w = (real(n, z, owner="TwoWheeledCart.initial_state") for n, z in (
             ("x1", x1), ("x2", x2), ("theta", theta), ("phi_l", phi_l), ("phi_r", phi_r), ("speed", speed),
             ("theta_dot", theta_dot)))
-        return jnp.stack([
+        return on_host(lambda xp, a, r, x1, x2, th, pl, pr, v, w: xp.stack([
             x1, x2, th, pl, pr,
-            v * jnp.cos(th), v * jnp.sin(th), w,
-            (v - self.a * w) / self.r, (v + self.a * w) / self.r,
-        ])  # fmt: skip
+            v * xp.cos(th), v * xp.sin(th), w,
+            (v - a * w) / r, (v + a * w) / r,
+        ]), self.a, self.r, x1, x2, th, pl, pr, v, w)  # fmt: skip
 
     def speed(self, x):
         """Speed along the symmetry axis v = x' . (cos theta, sin theta) [m/s]."""
