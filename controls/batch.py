@@ -54,7 +54,10 @@ from .pontryagin import (
 from ._result import DirectResult
 from .newton import _control_cost_hessian
 from .newton import _Shooting as _DirectShooting
-from .problem import OCP, ProblemError, Progress, batch_workers, check_tolerances, compiled, host_array, run_in_shares
+from nhjax import _validate as V
+
+from .problem import (OCP, ProblemError, Progress, as_problem_error, batch_workers, check_tolerances, compiled,
+                      host_array, run_in_shares)
 from .sqp import _check_sqp, parameter_bounds, sqp_iteration
 
 __all__ = ["BatchResult", "DirectBatchResult", "GridError", "solve_direct_batch", "solve_pontryagin_batch",
@@ -215,7 +218,14 @@ class _Statuses:
 
 def _problem_list(ocps, owner):
     """The batch's problems as a non-empty list of ``OCP``s (one OCP: a list of one)."""
-    ocps = list(ocps) if not isinstance(ocps, OCP) else [ocps]
+    if not isinstance(ocps, OCP):
+        try:
+            ocps = list(ocps)
+        except TypeError:
+            raise ProblemError(f"{owner}: the problems must be a list of controls.OCP (or one OCP, or a stack of "
+                               f"them), got {type(ocps).__name__}") from None
+    else:
+        ocps = [ocps]
     if not ocps:
         raise ProblemError(f"{owner}: no problems: pass a non-empty list of OCPs")
     for i, o in enumerate(ocps):
@@ -312,14 +322,15 @@ def _screen(stacked, z0, owner):
         stacked = jtu.tree_map(lambda a: np.where(finite.reshape((B,) + (1,) * (np.ndim(a) - 1)), a, a[donor])
                                if _is_number(a) and np.ndim(a) >= 1 else a, stacked)
         z0 = np.where(finite[:, None], z0, z0[donor])
-    stacked = jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, stacked)
+    stacked = jtu.tree_map(lambda a: jax.device_put(a) if isinstance(a, np.ndarray) else a, stacked)
     return stacked, z0, finite
 
 
 def _guesses(name, guess, B, size, owner):
     if guess is None:
         return np.zeros((B, size))
-    g = np.asarray(guess, float)
+    with as_problem_error():  # (real numbers; NaN/inf pass: such a member is flagged, not run)
+        g = np.asarray(V._as_real(name, guess, owner, "starting guess"), float)
     if g.shape == (size,):
         return np.broadcast_to(g, (B, size)).copy()
     if g.shape != (B, size):
@@ -425,7 +436,7 @@ def solve_pontryagin_batch(
 
     def args_of(part):
         problems, z0 = part
-        return (sh, jtu.tree_map(lambda a: jnp.asarray(a) if isinstance(a, np.ndarray) else a, problems), z0, *options)
+        return (sh, jtu.tree_map(lambda a: jax.device_put(a) if isinstance(a, np.ndarray) else a, problems), z0, *options)
 
     def run(z0):
         # (every array of the stack has the members on axis 0)
@@ -468,10 +479,10 @@ def solve_pontryagin_batch(
 
 def _grid_coordinates(grid, B, owner):
     """(B, d) integer coordinates of the members on a grid of shape ``grid`` (C order)."""
-    try:
-        shape = tuple(int(g) for g in (grid if isinstance(grid, (tuple, list)) else (grid,)))
-    except (TypeError, ValueError):
-        raise ProblemError(f"{owner}: grid must be a tuple of positive integers, got {grid!r}") from None
+    items = list(np.ravel(grid)) if isinstance(grid, np.ndarray) else grid if isinstance(grid, (tuple, list)) else (grid,)
+    with as_problem_error():
+        shape = tuple(V.integer("grid", g, minimum=1, owner=owner, what="the grid's shape: a tuple of positive "
+                                                                        "integers") for g in items)
     if not shape or min(shape) < 1 or int(np.prod(shape)) != B:
         raise ProblemError(f"{owner}: grid {shape} does not hold the {B} members (its product must be {B})")
     return np.stack(np.unravel_index(np.arange(B), shape), axis=1)

@@ -236,9 +236,10 @@ def closed_loop_batch_on_client(client, mpc, plant, x0s, periods, *, in_axes=Non
     import numpy as np
     from dask.distributed import as_completed
 
-    from .mpc import MPCError, _batch_inputs
+    from .mpc import MPCError, _batch_inputs, _start_time
 
     owner = "closed_loop_batch_on_client"
+    t0 = _start_time(t0, owner)
     plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, _ = _batch_inputs(
         mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner,
         measure)

@@ -317,6 +317,8 @@ class MPC(eqx.Module):
                 V.positive(name, v, owner=owner, shape=(), as_float=True)
         _model_checks(ocp.system, ocp.x0, owner)
         try:
+            if isinstance(period, (str, bytes, bool)):
+                raise TypeError
             period_f = float(period)
         except (TypeError, ValueError):
             raise MPCError(f"{owner}: period must be a number of seconds, got {period!r}") from None
@@ -682,6 +684,7 @@ class MPC(eqx.Module):
         N, m = self.intervals, self.ocp.system.control_dim
         x0 = self.ocp.x0 if x0 is None else x0
         x0 = _checked_vector("x0", x0, self.ocp.x0.shape[0], "MPC.init")
+        t0 = _start_time(t0, "MPC.init")
         if u_guess is None:
             lo, hi = (np.asarray(b) for b in self._bounds())
             u_guess = np.broadcast_to(np.clip(0.0, lo, hi), (N, m))
@@ -738,6 +741,12 @@ def _model_checks(system, x0, owner):
                        "the scene (e.g. controls.tasks.ReducedSteering for the spherical robot)")
 
 
+def _start_time(t0, owner):
+    """The loop's start time t0 [s]: a finite real scalar (``V.real``), as a float."""
+    with as_problem_error():
+        return V.real("t0", t0, owner=owner, shape=(), as_float=True, what="start time [s]")
+
+
 def _checked_vector(name, value, n, owner):
     try:
         a = np.asarray(value, dtype=float)
@@ -769,6 +778,11 @@ def _plant_checks(mpc, plant, owner, batched=False, measured=False):
     ``_measured_plant`` checks with its start)."""
     model = mpc.ocp.system
     if batched and isinstance(plant, AbstractSystem):
+        sizes = {np.shape(a)[0] if np.ndim(a) else None for a in jtu.tree_leaves(plant) if eqx.is_array(a)}
+        if len(sizes) != 1 or None in sizes or 0 in sizes:
+            raise MPCError(f"{owner}: in_axes={{'plant': 0}} needs a plant whose array leaves all carry one leading "
+                           f"member axis (e.g. built with eqx.filter_vmap), got {type(plant).__name__} with leaves "
+                           f"of shapes {[np.shape(a) for a in jtu.tree_leaves(plant) if eqx.is_array(a)][:6]}")
         plant = jtu.tree_map(lambda a: a[0] if eqx.is_array(a) else a, plant)
     if not isinstance(plant, AbstractSystem):
         raise MPCError(f"{owner}: plant must be an nhjax system (a scene, a Lagrangian, ...), got "
@@ -882,6 +896,10 @@ def _pushes(pushes, n, lead, owner):
         except (TypeError, ValueError):
             raise MPCError(f"{owner}: pushes must be a list of (time [s], state increment ({n},)) pairs, got "
                            f"{pushes!r}") from None
+    if times.ndim > 1 and times.shape[:-1] != lead:
+        want = (f"a leading axis of {lead[0]} members (times (B, P), increments (B, P, {n}))" if lead else
+                f"times of shape (P,) and increments (P, {n}) for one loop")
+        raise MPCError(f"{owner}: per-member pushes must have {want}, got times of shape {times.shape}")
     if dxs.shape[-1:] != (n,) or dxs.shape[:-1] != times.shape:
         raise MPCError(f"{owner}: pushes: each state increment must have {n} numbers (the model's state), got "
                        f"times of shape {times.shape} and increments of shape {dxs.shape}")
@@ -1129,6 +1147,7 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
     Returns a ``ClosedLoop``."""
     owner = "closed_loop"
     periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, measured=measure is not None)
+    t0 = _start_time(t0, owner)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
     if measure is None:
         y0 = _checked_vector("x0", x0, n, owner)
@@ -1192,6 +1211,15 @@ def _key_data(key, fsd, msd, owner, members=None):
         else:
             data = np.asarray(jax.random.key_data(jax.random.key(0)))
         return jax.device_put(data if members is None else np.broadcast_to(data, (members, *data.shape)).copy())
+    name, want = ("key", "one PRNG key, jax.random.key(seed)") if members is None else (
+        "keys", f"one PRNG key per member ({members}), jax.random.split(key, {members})")
+    typed = isinstance(key, jax.Array) and jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+    legacy = isinstance(key, (jax.Array, np.ndarray)) and key.dtype == np.uint32 and key.ndim >= 1
+    lead = () if members is None else (members,)
+    if not (typed or legacy) or (key.shape if typed else key.shape[:-1]) != lead:
+        got = (f"{type(key).__name__} of shape {tuple(key.shape)} and dtype {key.dtype}" if hasattr(key, "shape")
+               and hasattr(key, "dtype") else repr(key) if isinstance(key, (int, float, str)) else type(key).__name__)
+        raise MPCError(f"{owner}: {name} must be {want}, got {got}")
     return jax.random.key_data(key)
 
 
@@ -1202,10 +1230,8 @@ def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measur
     ``measure``: the plant's states, every leaf with the members on axis 0), force and
     measurement noise levels, the keys' raw data (B, ...), pushes' times (B, P) and
     increments (B, P, n), the pushes' functions (``measure``; else ()))."""
-    in_axes = dict(in_axes or {})
-    unknown = set(in_axes) - {"plant"}
-    if unknown:
-        raise MPCError(f"{owner}: in_axes keys must be among ('plant',), got {sorted(unknown)}")
+    with as_problem_error():
+        in_axes = V.axes_dict(in_axes, ("plant",), owner=owner)
     plant_axis = in_axes.get("plant")
     if plant_axis not in (None, 0):
         raise MPCError(f"{owner}: in_axes['plant'] must be 0 or None, got {plant_axis!r}")
@@ -1214,19 +1240,27 @@ def _batch_inputs(mpc, plant, x0s, periods, in_axes, pushes, force_noise, measur
     with as_problem_error():
         group = V.integer("group", group, minimum=1, owner=owner)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim
+    # (members of a batched plant: one leading size on every array leaf, _plant_checks)
+    plant_B = [a for a in jtu.tree_leaves(plant) if eqx.is_array(a)][0].shape[0] if plant_axis == 0 else None
     if measure is not None:
         X, B, push_t, push_fns = _measured_batch(mpc, plant, plant_axis, x0s, measure, pushes, owner)
     else:
-        X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s)
-        if X.ndim != 2 or X.shape[1] != n:
-            raise MPCError(f"{owner}: x0s must have shape (B, {n}) (one start per member), got {X.shape}")
+        try:
+            X = np.asarray(x0s, dtype=float) if not isinstance(x0s, jax.Array) else np.asarray(x0s, dtype=float)
+        except (TypeError, ValueError):
+            raise MPCError(f"{owner}: x0s must be an array of shape (B, {n}) of real numbers (one start per "
+                           f"member), got {type(x0s).__name__} {x0s!r:.80}") from None
+        if X.ndim != 2 or X.shape[1] != n or X.shape[0] == 0:
+            raise MPCError(f"{owner}: x0s must have shape (B, {n}) with B >= 1 (one start per member), got "
+                           f"{X.shape}")
         if not np.all(np.isfinite(X)):
             rows = np.flatnonzero(~np.all(np.isfinite(X), axis=1)).tolist()
             raise MPCError(f"{owner}: x0s contains NaN or inf in members {rows}; pass finite starts")
         B, push_fns = X.shape[0], ()
+    if plant_B is not None and plant_B != B:
+        raise MPCError(f"{owner}: the plant's arrays carry {plant_B} members (in_axes={{'plant': 0}}), x0s {B}; pass "
+                       "one plant per start")
     fsd, msd = _noise("force_noise", force_noise, m, owner), _noise("measurement_noise", measurement_noise, n, owner)
-    if keys is not None and jnp.shape(keys)[:1] != (B,):
-        raise MPCError(f"{owner}: keys must hold one PRNG key per member ({B}), got shape {jnp.shape(keys)}")
     key_data = _key_data(keys, fsd, msd, owner, members=B)
     if measure is not None:  # (the pushes are the functions; no increments)
         push_dx = np.zeros(push_t.shape + (n,))
@@ -1318,6 +1352,7 @@ def closed_loop_batch(mpc: MPC, plant, x0s, periods, *, in_axes=None, t0=0.0, u_
     ``controls.distributed.closed_loop_batch_on_client`` (chunks of members on the
     workers of a Dask cluster, joined into one result)."""
     owner = "closed_loop_batch"
+    t0 = _start_time(t0, owner)
     plant_axis, periods, plant_substeps, group, X, fsd, msd, key_data, push_t, push_dx, push_fns = _batch_inputs(
         mpc, plant, x0s, periods, in_axes, pushes, force_noise, measurement_noise, keys, plant_substeps, group, owner,
         measure)

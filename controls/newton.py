@@ -373,6 +373,10 @@ def solve_direct_newton(ocp: OCP, param, guess, *, rtol=1e-10, atol=1e-10, ctol=
                      max_iter=(max_iter, "int"))
     # z and the iteration's algebra live on the host (numpy): an eager jax operation is a
     # dispatch, and in a new process a program of its own
+    if guess is None:
+        raise ProblemError(f"solve_direct_newton: guess must be the ({param.size},) starting parameters of the "
+                           "parametrization (e.g. np.zeros(param.size), param.fit(u_fn) or a task's loop guess), "
+                           "got None")
     z = np.asarray(check_guess("guess", guess, (param.size,), "parametrization"), float)
     m, P = ocp.n_constraints, param.size
     if m == 0:

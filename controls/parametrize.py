@@ -110,7 +110,7 @@ class Parametrization(eqx.Module):
         with as_problem_error():
             V.function("u_fn", u_fn, owner=owner, signature="u_fn(t) -> (dim,) inputs")
         try:
-            out = jax.eval_shape(u_fn, jnp.zeros(()))
+            out = jax.eval_shape(u_fn, jax.ShapeDtypeStruct((), jnp.float64))
         except Exception as e:  # noqa: BLE001 - the user's function: say what it is for
             raise ProblemError(f"{owner}: u_fn(t) could not be evaluated on a scalar time t [s]: "
                                f"{type(e).__name__}: {e}") from None
@@ -118,7 +118,15 @@ class Parametrization(eqx.Module):
             raise ProblemError(f"{owner}: u_fn(t) must return the {self.dim} inputs, shape ({self.dim},), got "
                                f"{getattr(out, 'shape', type(out).__name__)}")
         ts = self.sample_times()
-        return fit_samples(self, ts, jax.vmap(u_fn)(jnp.asarray(ts)))
+        # (one program for the samples: the user's function run eagerly under vmap would be a
+        # program per operation, each compiled or looked up in every new process)
+        us = np.asarray(jax.jit(jax.vmap(u_fn))(jax.device_put(ts)), float)
+        bad = ~np.all(np.isfinite(us), axis=1)
+        if bad.any():
+            raise ProblemError(f"{owner}: u_fn(t) returned NaN or inf at t = {float(ts[bad][0]):g} s (and "
+                               f"{int(bad.sum()) - 1} more of the {ts.size} sample times in [{float(ts[0]):g}, "
+                               f"{float(ts[-1]):g}]); the fitted inputs must be finite over the horizon")
+        return fit_samples(self, ts, us)
 
     def _check(self, params):
         """``params`` of the right shape: a float64 numpy array when it has a value (the
@@ -224,9 +232,12 @@ class CubicSpline(Parametrization):
         h = self.T / self.n
         n = self.n
         # natural spline: M_0 = M_n = 0, tridiagonal system for the interior second derivatives
-        A = (jnp.diag(jnp.full(n - 1, 4.0)) + jnp.diag(jnp.ones(n - 2), 1) + jnp.diag(jnp.ones(n - 2), -1))
-        rhs = 6.0 / h**2 * (y[2:] - 2 * y[1:-1] + y[:-2])
-        inner = jnp.linalg.solve(A, rhs) if n > 1 else jnp.zeros((0, self.dim))
+        if n > 1:
+            A = (jnp.diag(jnp.full(n - 1, 4.0)) + jnp.diag(jnp.ones(n - 2), 1) + jnp.diag(jnp.ones(n - 2), -1))
+            rhs = 6.0 / h**2 * (y[2:] - 2 * y[1:-1] + y[:-2])
+            inner = jnp.linalg.solve(A, rhs)
+        else:  # two knots: the natural spline is the straight line between them
+            inner = jnp.zeros((0, self.dim))
         M = jnp.concatenate([jnp.zeros((1, self.dim)), inner, jnp.zeros((1, self.dim))])
         return _SplineSignal(ts, y, M)
 

@@ -95,7 +95,11 @@ def _as_real(name, value, owner, what):
     """A float array from ``value`` (tracers pass through), or ParameterError."""
     if isinstance(value, jax.core.Tracer):
         return value
-    if isinstance(value, (str, bytes)) or value is None or np.iscomplexobj(value):
+    try:  # (np.iscomplexobj converts: a ragged sequence raises there)
+        bad = isinstance(value, (str, bytes)) or value is None or np.iscomplexobj(value)
+    except (TypeError, ValueError):
+        bad = True
+    if bad:
         raise ParameterError(
             f"{_where(owner)}{name} must be a real number{_describe(what)}, got {value!r}", name, value)
     try:

@@ -616,3 +616,20 @@ def simulate_memory(system, x0, saveat, *, max_steps=None, stores_steps=False, o
         check_memory(need, f"a differentiated solve recording max_steps={int(max_steps)} steps of "
                      f"{n_state} numbers", "lower max_steps (DiscreteAdjoint(max_steps=...)) or "
                      "differentiate shorter horizons", owner=owner)
+
+
+def axes_dict(in_axes, keys, *, owner="", default=None):
+    """``in_axes`` as a dict (``default`` when None): a mapping whose keys are among
+    ``keys``; ParameterError naming ``in_axes`` for anything else (a list, a string, an
+    unknown key)."""
+    if in_axes is None:
+        return dict(default or {})
+    example = f"'{'x0' if 'x0' in keys else keys[0]}': 0"
+    if not isinstance(in_axes, dict):
+        raise ParameterError(f"{_where(owner)}in_axes must be a dict such as {{{example}}} with keys among "
+                             f"{', '.join(repr(k) for k in keys)} (or None), got {in_axes!r}", "in_axes", in_axes)
+    unknown = set(in_axes) - set(keys)
+    if unknown:
+        raise ParameterError(f"{_where(owner)}in_axes keys must be among {', '.join(repr(k) for k in keys)}; got "
+                             f"{sorted(map(str, unknown))}", "in_axes", in_axes)
+    return dict(in_axes)

@@ -403,3 +403,18 @@ def test_direct_jacobian_by_tangents_equals_the_reverse_passes_and_differences()
     D_fd = np.stack([(_values(sh, z + h * e) - _values(sh, z - h * e)) / (2 * h) for e in np.eye(z.size)], 1)
     np.testing.assert_allclose(D, D_fd, rtol=1e-7, atol=1e-8)
     assert np.abs(D[0]).max() > 0.1 and np.abs(D[1:]).max() > 0.1
+
+
+def test_parametrization_edge_cases_are_named_or_answered():
+    """A CubicSpline of one interval is the straight line between its knots (it raised a
+    JAX shape error); fit of a function that returns NaN, and solve_direct_newton without a
+    guess, are ProblemErrors naming the argument (a NaN fit, an IndexError before)."""
+    spline = controls.CubicSpline(1, 2.0, 2)
+    u = spline.signal(np.array([1.0, -1.0, 3.0, 1.0]))
+    np.testing.assert_allclose(np.asarray(u(0.5)), [1.5, -0.5], rtol=0, atol=1e-14)
+    with pytest.raises(controls.ProblemError, match="Chebyshev.fit: u_fn\\(t\\) returned NaN or inf at t = 0"):
+        controls.Chebyshev(4, 1.0, 2).fit(lambda t: jnp.full(2, jnp.nan))
+    ocp = controls.OCP(DoubleIntegrator(), jnp.zeros(2), 1.0, running_cost=HalfSquare(),
+                       terminal_constraints=Target(jnp.array([1.0, 0.0])))
+    with pytest.raises(controls.ProblemError, match="solve_direct_newton: guess must be the \\(5,\\) starting"):
+        controls.solve_direct_newton(ocp, controls.Chebyshev(4, 1.0, 1), None)

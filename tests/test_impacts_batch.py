@@ -222,3 +222,18 @@ def test_lazy_cond_gives_each_lane_what_lax_cond_gives_it_and_skips_an_untaken_b
         jax.effects_barrier()
         assert bool(calls) == taken, (cond, xs_, len(calls))
         np.testing.assert_array_equal(np.asarray(out), np.where(np.asarray(xs_) > 10.0, 2 * xs_, xs_ + 1.0))
+
+
+def test_in_axes_that_is_not_a_dict_is_named():
+    """in_axes given as a list or a string (a raw TypeError/ValueError of dict() before)."""
+    ball = BouncingBall()
+    X = np.array([[0.1, 0.0], [0.2, 0.0]])
+    with pytest.raises(ParameterError, match="simulate_impacts_batch: in_axes must be a dict") as err:
+        nhjax.simulate_impacts_batch(ball, X, 1.0, in_axes="x0")
+    assert err.value.name == "in_axes"
+    with pytest.raises(ParameterError, match=r"simulate_batch \(a system with one-sided constraints\): in_axes must"):
+        nhjax.simulate_batch(ball, X, 1.0, in_axes=[0], progress=False)
+    cat = nhjax.scenes.FallingCat()
+    x0 = cat.initial_state(0.8)
+    with pytest.raises(ParameterError, match="simulate_batch: in_axes must be a dict"):
+        nhjax.simulate_batch(cat, jnp.stack([x0, x0]), 0.1, in_axes=[0], progress=False)

@@ -723,3 +723,42 @@ def test_new_options_get_named_errors():
         MPC(ocp, PERIOD, N, disturbance_gain=[0.5, 0.5])
     with pytest.raises(MPCError, match="group"):
         closed_loop_batch(MPC(ocp, PERIOD, N), CAT, np.asarray(X0)[None], 2, group=0)
+
+
+def test_loop_arguments_of_the_wrong_kind_get_named_errors():
+    """Start times, PRNG keys, batched starts, in_axes, per-member plants and pushes of the
+    wrong kind or size are refused with MPCError naming the argument, before any numerics
+    (they gave NaN times, TypeErrors from jax.random, ZeroDivisionError, IndexError)."""
+    ocp = _terminal_cost_ocp()
+    with pytest.raises(MPCError, match="period must be a number of seconds, got '0.1'"):
+        MPC(ocp, "0.1", N)
+    mpc = MPC(ocp, PERIOD, N)
+    for t0, words in ((np.nan, "t0 must be finite"), ("0", "t0 must be a real number"),
+                      (np.zeros(2), "t0 must be a scalar")):
+        with pytest.raises(MPCError, match=f"closed_loop: {words}"):
+            closed_loop(mpc, CAT, X0, 2, t0=t0)
+    with pytest.raises(MPCError, match="closed_loop_batch: t0 must be finite"):
+        closed_loop_batch(mpc, CAT, np.array([X0, X0]), 2, t0=np.inf)
+    with pytest.raises(MPCError, match="MPC.init: t0 must be finite"):
+        mpc.init(None, None, np.nan)
+    for key in (0, "k", jax.random.split(jax.random.key(0), 2), jax.random.split(jax.random.PRNGKey(0), 2)):
+        with pytest.raises(MPCError, match="closed_loop: key must be one PRNG key"):
+            closed_loop(mpc, CAT, X0, 2, force_noise=0.01, key=key)
+    X = np.array([X0, X0])
+    for keys in ([1, 2], jax.random.split(jax.random.key(0), 3), jax.random.split(jax.random.PRNGKey(0), 3)):
+        with pytest.raises(MPCError, match=r"closed_loop_batch: keys must be one PRNG key per member \(2\)"):
+            closed_loop_batch(mpc, CAT, X, 2, force_noise=0.1, keys=keys)
+    with pytest.raises(MPCError, match="B >= 1"):
+        closed_loop_batch(mpc, CAT, np.zeros((0, 5)), 2)
+    for bad in ("x", [[1.0, 2.0], [3.0]]):
+        with pytest.raises(MPCError, match=r"x0s must be an array of shape \(B, 5\) of real numbers"):
+            closed_loop_batch(mpc, CAT, bad, 2)
+    with pytest.raises(MPCError, match="in_axes must be a dict"):
+        closed_loop_batch(mpc, CAT, X, 2, in_axes=[0])
+    with pytest.raises(MPCError, match="one leading member axis"):
+        closed_loop_batch(mpc, CAT, X, 2, in_axes={"plant": 0})
+    plants = eqx.filter_vmap(lambda s: FallingCat(I1=CAT.I1 * s))(jnp.array([1.0, 1.1, 1.2]))
+    with pytest.raises(MPCError, match="carry 3 members"):
+        closed_loop_batch(mpc, plants, X, 2, in_axes={"plant": 0})
+    with pytest.raises(MPCError, match="leading axis of 2 members"):
+        closed_loop_batch(mpc, CAT, X, 2, pushes=(np.zeros((3, 1)), np.zeros((3, 1, 5))))

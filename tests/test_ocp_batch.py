@@ -237,3 +237,23 @@ def test_direct_batch_refuses_members_of_other_structure_by_name():
         controls.solve_direct_batch([chart, chart], param, np.zeros((3, 22)), progress=False)
     with pytest.raises(controls.ProblemError, match="is for solve_pontryagin_batch"):
         controls.solve_direct_batch(controls.stack_members([chart, chart]), param, progress=False)
+
+
+def test_batch_arguments_of_the_wrong_kind_are_named():
+    """Problems that are not a list, guesses that are not numbers (a string, ragged
+    rows) and a grid shape that is not integers are refused by name before any numerics."""
+    cat = FallingCatKinematic()
+    ocps = [velocity_somersault_chart(cat, th, -0.3, T) for th in (0.5, 0.6)]
+    for solve in (controls.solve_pontryagin_batch, lambda o: controls.solve_direct_batch(o, controls.Chebyshev(4, T, 2))):
+        for bad in (None, 5):
+            with pytest.raises(controls.ProblemError, match="must be a list of controls.OCP"):
+                solve(bad)
+    with pytest.raises(controls.ProblemError, match="p0_guess must be a real number"):
+        controls.solve_pontryagin_batch(ocps, "abc", progress=False)
+    with pytest.raises(controls.ProblemError, match="nu_guess must be a real number"):
+        controls.solve_pontryagin_batch(ocps, np.zeros(3), [[1.0, 2.0, 3.0], [1.0, 2.0]], progress=False)
+    with pytest.raises(controls.ProblemError, match="guess must be a real number"):
+        controls.solve_direct_batch(ocps, controls.Chebyshev(4, T, 2), "g", progress=False)
+    for grid in ("2", (2.7,), (0,)):
+        with pytest.raises(controls.ProblemError, match="solve_pontryagin_batch: grid must be"):
+            controls.solve_pontryagin_batch(ocps, grid=grid, progress=False)

@@ -374,3 +374,39 @@ def test_loop_guess_torques_drive_the_chain_around_its_loop():
     ref = np.stack([np.asarray(path(t)[0]) for t in np.asarray(tr.ts)])
     assert np.abs(np.asarray(tr.xs[:, 1:3]) - ref).max() < 1e-2
     assert abs(float(tr.xs[-1, 0]) - turn) < 1e-3
+
+
+def test_loop_helpers_name_bad_arguments():
+    """controls.tasks' joint-loop helpers (chain_radius_for_turn, chain_loop_turn,
+    chain_loop_guess) check the chain, phi0, the direction, the radius, the orientation, T
+    and the parametrization before any numerics (NaN results, numpy and JAX shape errors,
+    AttributeErrors otherwise)."""
+    import controls
+    from controls.tasks import chain_loop_guess, chain_loop_turn, chain_radius_for_turn
+    from nhjax.errors import ParameterError
+
+    chain, phi0 = PlanarChain(group="SO2"), jnp.array([0.5, 0.5])
+    for bad, words in (([0.5, np.nan], "phi0 must be finite"), ("ab", "phi0 must be a real number"),
+                       ([0.5, 0.5, 0.5], "phi0 must be a 2-vector")):
+        with pytest.raises(ParameterError, match=f"radius_for_turn: {words}"):
+            chain_radius_for_turn(chain, 0.2, bad)
+    with pytest.raises(ParameterError, match="direction must be a nonzero 2-vector"):
+        chain_radius_for_turn(chain, 0.2, phi0, direction=(0.0, 0.0))
+    with pytest.raises(ParameterError, match="direction must be a 2-vector"):
+        chain_radius_for_turn(chain, 0.2, phi0, direction=(1.0, 0.0, 0.0))
+    with pytest.raises(controls.ProblemError, match="radius_for_turn: chain must be a nhjax.scenes.PlanarChain"):
+        chain_radius_for_turn(nhjax.scenes.FallingCat(), 0.2, phi0)
+    with pytest.raises(ParameterError, match="chain_loop_turn: orientation must be one of 1, -1"):
+        chain_loop_turn(chain, phi0, 0.1, orientation=2)
+    with pytest.raises(ParameterError, match="chain_loop_turn: radius must be positive"):
+        chain_loop_turn(chain, phi0, -1.0)
+    param = controls.Chebyshev(10, 3.0, 2)
+    for T, words in ((0.0, "T = 0.0 must be positive"), (np.nan, "T must be a finite time")):
+        with pytest.raises(controls.ProblemError, match=f"chain_loop_guess: {words}"):
+            chain_loop_guess(chain, param, phi0, T, 0.1)
+    with pytest.raises(ParameterError, match="chain_loop_guess: radius must be finite"):
+        chain_loop_guess(chain, param, phi0, 3.0, np.nan)
+    with pytest.raises(controls.ProblemError, match="the parametrization has 3 inputs, PlanarChain takes 2"):
+        chain_loop_guess(chain, controls.Chebyshev(10, 3.0, 3), phi0, 3.0, 0.1)
+    with pytest.raises(ParameterError, match="chain_loop_guess: phi0 must be a 2-vector"):
+        chain_loop_guess(chain, param, [0.5, 0.5, 0.5], 3.0, 0.1)

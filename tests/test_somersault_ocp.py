@@ -206,3 +206,34 @@ def test_torque_somersault_direct_and_pontryagin_agree():
     assert ind.converged and ind.violation < 1e-8
     np.testing.assert_allclose(d.cost, ind.cost, rtol=1e-6)
     assert res["stationarity"] < 1e-2
+
+
+def test_guesses_and_costates_name_bad_arguments():
+    """fixed_theta_costates, loop_guess and torque_loop_guess check the cat, the bend, the
+    horizon and the parametrization before any numerics (they raised ZeroDivisionError,
+    numpy's ValueError, AttributeError, or returned for a cat of another class)."""
+    from controls.tasks import loop_guess
+
+    cat_k, cat = FallingCatKinematic(), FallingCat()
+    param = controls.Chebyshev(8, 1.0, 2)
+    with pytest.raises(controls.ProblemError, match="fixed_theta_costates: T = 0.0 must be positive"):
+        fixed_theta_costates(cat_k, 0.8, 0.0)
+    with pytest.raises(controls.ProblemError, match="fixed_theta_costates: theta0 must be a real number"):
+        fixed_theta_costates(cat_k, "a", 1.0)
+    with pytest.raises(controls.ProblemError, match="cat must be an nhjax.scenes.FallingCatKinematic"):
+        fixed_theta_costates(cat, 0.8, 1.0)
+    for T, words in ((0.0, "T = 0.0 must be positive"), (np.nan, "T must be a finite time")):
+        with pytest.raises(controls.ProblemError, match=f"loop_guess: {words}"):
+            loop_guess(param, 0.8, T, 1)
+        with pytest.raises(controls.ProblemError, match=f"torque_loop_guess: {words}"):
+            torque_loop_guess(cat, param, 0.8, T)
+    with pytest.raises(controls.ProblemError, match="loop_guess: theta0 must be a real number"):
+        loop_guess(param, "a", 1.0, 1)
+    with pytest.raises(controls.ProblemError, match="loop_guess: param must be a control parametrization"):
+        loop_guess("cheb", 0.8, 1.0, 1)
+    with pytest.raises(controls.ProblemError, match="the parametrization has 3 inputs, the cat takes 2"):
+        loop_guess(controls.Chebyshev(8, 1.0, 3), 0.8, 1.0, 1)
+    with pytest.raises(controls.ProblemError, match="torque_loop_guess: cat must be an nhjax.scenes.FallingCat"):
+        torque_loop_guess(cat_k, param, 0.8, 1.0)
+    with pytest.raises(controls.ProblemError, match=r"torque_loop_guess: theta0 must lie in \(0, 3.14159\)"):
+        torque_loop_guess(cat, param, 0.0, 1.0)

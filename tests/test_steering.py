@@ -243,3 +243,40 @@ def test_steering_with_a_heading():
     # turning costs effort: more than the same move without the heading
     free = solve_direct_newton(sphere_steering(robot, TARGET, T), param, res.params, ctol=1e-10, gtol=1e-7)
     assert free.converged and free.cost < cost
+
+
+def test_tracking_task_and_guess_arguments_are_named():
+    """sphere_tracking's numbers, shell_push's dv and robot, linear_guess's problem,
+    parametrization and rcond, sphere_steering's T as a string and a heading that is not
+    a number: named ProblemErrors before any numerics (they were numpy TypeErrors, a JAX
+    shape error inside the running cost, AttributeErrors, or silently accepted)."""
+    from controls.tasks import shell_push, sphere_tracking
+
+    robot = ShellWithTop()
+    for kw, words in ((dict(amplitude="a"), "amplitude must be a real number"),
+                      (dict(amplitude=[0.5, 0.5]), "amplitude must be a scalar"),
+                      (dict(horizon=None), "horizon must be a time in seconds"),
+                      (dict(centre=(0.0, 0.0, 0.0)), "centre must be a 2-vector"),
+                      (dict(centre=(np.nan, 0.0)), "centre must be finite"),
+                      (dict(position_weight=-1.0), "position_weight must be non-negative"),
+                      (dict(swing_weight=np.nan), "swing_weight must be finite"),
+                      (dict(effort_weight="a"), "effort_weight must be a real number")):
+        with pytest.raises(controls.ProblemError, match=f"sphere_tracking: {words}"):
+            sphere_tracking(robot, **kw)
+    with pytest.raises(controls.ProblemError, match="shell_push: dv must be a 2-vector"):
+        shell_push(robot, (0.1, 0.0, 0.0))
+    with pytest.raises(controls.ProblemError, match="shell_push: robot must be an nhjax.scenes.ShellWithTop"):
+        shell_push(nhjax.scenes.FallingCat(), (0.1, 0.0))
+    with pytest.raises(controls.ProblemError, match="horizon T must be a positive number of seconds, got '1'"):
+        sphere_steering(robot, TARGET, "1")
+    with pytest.raises(controls.ProblemError, match="heading must be a finite angle"):
+        sphere_steering(robot, TARGET, T, heading="north")
+    ocp = sphere_steering(robot, TARGET, T)
+    with pytest.raises(controls.ProblemError, match="linear_guess: the problem must be a controls.OCP"):
+        linear_guess("ocp", controls.Chebyshev(6, T, 3))
+    with pytest.raises(controls.ProblemError, match="linear_guess: param must be a control parametrization"):
+        linear_guess(ocp, "p")
+    with pytest.raises(controls.ProblemError, match="linear_guess: the parametrization has 2 inputs"):
+        linear_guess(ocp, controls.Chebyshev(6, T, 2))
+    with pytest.raises(controls.ProblemError, match="linear_guess: rcond must be positive"):
+        linear_guess(ocp, controls.Chebyshev(6, T, 3), rcond=-1.0)

@@ -35,6 +35,15 @@ def test_errors_are_named_and_keep_builtin_classes():
     assert controls.ProblemError is E.ProblemError
 
 
+def test_a_ragged_sequence_is_a_parameter_error():
+    """A ragged list where numbers go (numpy's own ValueError from np.iscomplexobj before)."""
+    from nhjax import _validate as V
+
+    for check in (lambda v: V.real("x", v, owner="f"), lambda v: V.positive("x", v, owner="f")):
+        with pytest.raises(E.ParameterError, match=r"f: x must be a real number, got \[\[1, 2\], \[1\]\]"):
+            check([[1, 2], [1]])
+
+
 def test_user_lagrangian_with_a_state_of_the_wrong_length():
     two = Lagrangian(n=2, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: 0.5 * q @ q)
     for bad in (jnp.ones(3), jnp.ones(5), jnp.ones((2, 2))):

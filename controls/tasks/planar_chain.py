@@ -22,12 +22,13 @@ import numpy as np
 
 from nhjax import _programs
 from nhjax import _validate as V
+from nhjax.errors import ParameterError
 from nhjax.mechanics.reduction import EllipseLoop, curvature_integral
 from nhjax.scenes.planar_chain import PlanarChain
 
 from ..parametrize import fit_samples
 from ..problem import OCP, ProblemError
-from .somersault import Effort, TerminalTarget
+from .somersault import Effort, TerminalTarget, _guess_inputs
 
 __all__ = ["chain_reorientation", "chain_steering", "loop_guess", "loop_path", "loop_turn", "radius_for_turn"]
 
@@ -37,6 +38,25 @@ def _check_chain(chain, group, name):
         raise ProblemError(f"{name}: chain must be a nhjax.scenes.PlanarChain, got {type(chain).__name__}")
     if type(chain.symmetry).__name__ != group:
         raise ProblemError(f"{name} needs a PlanarChain with group='{group}', got {type(chain.symmetry).__name__}")
+
+
+def _loop_inputs(owner, chain, phi0, direction, radius=None, orientation=None):
+    """Entry checks of the joint-loop helpers: a PlanarChain, phi0 (k,) finite, a nonzero
+    finite 2-vector ``direction``, a radius > 0 [rad] and an orientation +1 or -1 (when
+    given). Returns (phi0, the unit direction as numpy)."""
+    if not isinstance(chain, PlanarChain):
+        raise ProblemError(f"{owner}: chain must be a nhjax.scenes.PlanarChain, got {type(chain).__name__}")
+    phi0 = _phi0(chain, phi0, owner)
+    d = np.asarray(V.vector("direction", direction, 2, owner=owner,
+                            what="direction of the loop's centre from phi0 in the plane of the first two joints"))
+    if not np.linalg.norm(d) > 0:
+        raise ParameterError(f"{owner}: direction must be a nonzero 2-vector (it points from phi0 to the loop's "
+                               f"centre), got {d.tolist()}", "direction", direction)
+    if radius is not None:
+        V.positive("radius", radius, owner=owner, shape=(), what="radius of the joint loop [rad]")
+    if orientation is not None:
+        V.choice("orientation", orientation, (1, -1), owner=owner)
+    return phi0, d / np.linalg.norm(d)
 
 
 def _phi0(chain, phi0, owner):
@@ -55,7 +75,8 @@ def chain_reorientation(chain: PlanarChain, turn, T, phi0=None) -> OCP:
     phi0 = _phi0(chain, phi0, "chain_reorientation")
     turn = V.real("turn", turn, owner="chain_reorientation", shape=(), what="turn of the chain [rad]")
     x0 = chain.initial_state(phi0)
-    target = x0.at[0].set(turn)
+    # (on the host: an eager .at[].set is a program of its own in every new process)
+    target = V.to_device(np.concatenate([np.asarray(turn, float).reshape(1), np.asarray(x0)[1:]]))
     return OCP(chain, x0, T, running_cost=Effort(), terminal_constraints=TerminalTarget(target))
 
 
@@ -99,11 +120,6 @@ def loop_path(phi0, radius, direction, orientation, T):
     return derivs
 
 
-def _unit(direction):
-    d = np.asarray(direction, float)
-    return d / np.linalg.norm(d)
-
-
 def _turn_of(chain, phi0, radius, d, orientation, n=32):
     """``loop_turn`` as a traceable function of its numbers (d a unit vector)."""
     c = phi0[:2] + radius * d
@@ -113,7 +129,8 @@ def _turn_of(chain, phi0, radius, d, orientation, n=32):
 def loop_turn(chain: PlanarChain, phi0, radius, direction=(1.0, 1.0), orientation=1, n=32):
     """The turn [rad] of the loop of ``loop_path``: -(orientation) x the curvature
     integral over the enclosed disk (exact: the SO(2) connection is abelian)."""
-    return float(_turn_of(chain, jnp.asarray(phi0, float), radius, jnp.asarray(_unit(direction)), orientation, n=n))
+    phi0, d = _loop_inputs("chain_loop_turn", chain, phi0, direction, radius, orientation)
+    return float(_turn_of(chain, phi0, radius, jnp.asarray(d), orientation, n=n))
 
 
 #: Secant steps of ``radius_for_turn``: from r_max sqrt(|turn| / |turn(r_max)|) (exact
@@ -157,9 +174,10 @@ def radius_for_turn(chain: PlanarChain, turn, phi0, direction=(1.0, 1.0), r_max=
     one stored program (``nhjax._programs.call``): in a notebook's new process it is
     loaded, neither traced nor compiled again."""
     owner = "radius_for_turn"
+    phi0, d = _loop_inputs(owner, chain, phi0, direction)
     turn = float(V.real("turn", turn, owner=owner, shape=(), what="turn of the chain [rad]"))
     r_max = float(V.positive("r_max", r_max, owner=owner, shape=(), what="largest loop radius [rad]"))
-    args = (chain, jnp.asarray(phi0, float), jnp.asarray(_unit(direction)), jnp.asarray(turn), jnp.asarray(r_max))
+    args = (chain, phi0, *(V.to_device(v) for v in (d, turn, r_max)))
     full, radius, miss = (float(a) for a in _programs.call("controls.tasks.radius_for_turn", _solve_radius, args,
                                                            compiler_options=_programs.QUICK_OPTIONS))
     if abs(full) < abs(turn):
@@ -191,8 +209,11 @@ def loop_guess(chain: PlanarChain, param, phi0, T, radius, direction=(1.0, 1.0),
     """Parameters of ``param`` fitted to the joint torques that drive the chain around
     the ``loop_path`` circle (computed torque: the inverse of the reduced equations),
     sampled at ``param.sample_times()`` by one stored program."""
+    owner = "chain_loop_guess"
+    phi0, d = _loop_inputs(owner, chain, phi0, direction, radius, orientation)
+    T = _guess_inputs(owner, param, chain.control_dim, T, system=type(chain).__name__)
     ts = param.sample_times()
-    us = _programs.small_call("controls.tasks.loop_guess", _loop_torques, chain, jnp.asarray(phi0, float), radius,
-                              _unit(direction), float(orientation), float(T), ts)
+    us = _programs.small_call("controls.tasks.loop_guess", _loop_torques, chain, phi0, radius,
+                              d, float(orientation), float(T), ts)
     return fit_samples(param, ts, us)
 

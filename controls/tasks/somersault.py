@@ -41,7 +41,7 @@ from nhjax.scenes.falling_cat import FallingCatSmooth
 
 from .._result import DirectResult
 from ..direct import solve_direct
-from ..parametrize import Chebyshev, fit_samples, prepare_fit
+from ..parametrize import Chebyshev, Parametrization, fit_samples, prepare_fit
 from ..pontryagin import IndirectResult, pmp_residual, prepare_pmp_residual, prepare_pontryagin, solve_pontryagin
 from nhjax import _validate as V
 
@@ -63,6 +63,20 @@ def _task_inputs(owner, cat, kind, theta0, turn, windings=None, chart=True):
         V.real("turn", turn, owner=owner, shape=(), what="turn of the cat about e2 [rad]")
         if windings is not None:
             V.real("windings", windings, owner=owner, shape=(), what="turns of the twist chi")
+
+
+def _guess_inputs(owner, param, dim, T, system="the cat"):
+    """Entry checks of the starting guesses: ``param`` a controls parametrization of
+    ``dim`` inputs (those ``system`` takes), the horizon T [s] (``V.duration``). Returns
+    T as a float."""
+    if not isinstance(param, Parametrization):
+        raise ProblemError(f"{owner}: param must be a control parametrization (controls.Chebyshev, "
+                           f"PiecewiseLinear, ...), got {type(param).__name__}")
+    if param.dim != dim:
+        raise ProblemError(f"{owner}: the parametrization has {param.dim} inputs, {system} takes {dim}: build it "
+                           f"with dim={dim} (e.g. {type(param).__name__}({param.n}, T, {dim}))")
+    with as_problem_error():
+        return V.duration("T", T, owner=owner)
 
 __all__ = [
     "Effort",
@@ -126,7 +140,7 @@ def velocity_somersault_smooth(cat: FallingCatSmooth, theta0, turn, T, j=0) -> O
 def torque_somersault(cat: FallingCat, theta0, turn, T, windings=1) -> OCP:
     """Rest to rest under torques: x = (theta, chi, psi, theta', chi'); cost int |u|^2."""
     _task_inputs("torque_somersault", cat, FallingCat, theta0, turn, windings)
-    target = jnp.stack([jnp.asarray(v, float) for v in (theta0, 2 * np.pi * windings, turn, 0.0, 0.0)])
+    target = V.stacked([theta0, 2 * np.pi * windings, turn, 0.0, 0.0])
     return OCP(cat, cat.initial_state(theta0), T, running_cost=Effort(),
                terminal_constraints=TerminalTarget(target))
 
@@ -139,6 +153,10 @@ def fixed_theta_costates(cat: FallingCatKinematic, theta0, T, windings=1):
         p_psi = I1 c (lam s^2/D)' / f',   p_chi = f p_psi - 2 I1 (lam s^2/D) c,
     and the costates are constant; nu = p(T) (no terminal cost).
     """
+    owner = "fixed_theta_costates"
+    _task_inputs(owner, cat, FallingCatKinematic, theta0, 0.0, windings)
+    with as_problem_error():
+        T = V.duration("T", T, owner=owner)
     p = _fixed_theta_costates(cat, np.asarray(theta0, float), np.asarray(2 * np.pi * windings / T, float))
     return p, p
 
@@ -166,8 +184,12 @@ def loop_guess(param, theta0, T, winding):
     advances 2 pi winding); winding = 0: a circle of radius theta0/3 through
     w(0) = (theta0, 0) that does not enclose the straight cat (chi returns).
     """
+    owner = "loop_guess"
+    T = _guess_inputs(owner, param, 2, T)
+    with as_problem_error():
+        theta0 = V.real("theta0", theta0, owner=owner, shape=(), as_float=True, what="radius of the loop in w [rad]")
+        winding = V.real("winding", winding, owner=owner, shape=(), as_float=True, what="turns of the loop")
     # sampled in numpy: in a new process each eager jax operation is a program to lower
-    theta0, T = float(theta0), float(T)
     r, c = (theta0, 2 * np.pi * winding / T) if winding else (theta0 / 3, 2 * np.pi / T)
     ts = param.sample_times()
     return fit_samples(param, ts, r * c * np.stack([-np.sin(c * ts), np.cos(c * ts)], axis=1))
@@ -280,11 +302,14 @@ def torque_loop_guess(cat: FallingCat, param, theta0, T, windings=1):
     chi'(t) = c (1 - cos(2 pi t / T)), c = 2 pi windings / T: u1 balances the
     centrifugal term, u2 = 2 I1 lam s^2 / D chi''. A rest-to-rest motion that
     turns psi by -2 pi windings f(theta0): a start for the torque somersault."""
+    owner = "torque_loop_guess"
+    _task_inputs(owner, cat, FallingCat, theta0, 0.0, windings)
+    T = _guess_inputs(owner, param, 2, T)
     # sampled in numpy (as loop_guess): eager jax operations would each be a program to
     # lower in a new process
-    theta0, T = float(theta0), float(T)
+    theta0 = float(theta0)
     s, co = np.sin(theta0), np.cos(theta0)
-    D = float(cat.D(theta0))
+    D = s * s + float(cat.lam) * co * co  # cat.D(theta0), (6.6), on the host
     I1, lam = float(cat.I1), float(cat.lam)
     c, w = 2 * np.pi * windings / T, 2 * np.pi / T
     ts = param.sample_times()

@@ -91,7 +91,10 @@ import nhjax
 
 from ..newton import solve_direct_newton
 from ..parametrize import fit_samples
-from ..problem import OCP, CostAugmented, ProblemError, _OnState, compiled, host_array
+from nhjax import _validate as V
+
+from ..problem import (OCP, CostAugmented, ProblemError, _OnState, as_problem_error, check_ocp, check_parametrization,
+                       compiled, host_array)
 from .somersault import Effort
 
 __all__ = [
@@ -179,6 +182,8 @@ def sphere_steering(robot: ShellWithTop, target_xy, T, heading=None) -> OCP:
         raise ProblemError(f"robot must be an nhjax.scenes.ShellWithTop, got {type(robot).__name__}")
     target = _as_target(target_xy)
     try:
+        if isinstance(T, (str, bytes, bool)):
+            raise TypeError
         T = float(T)
     except (TypeError, ValueError) as e:
         raise ProblemError(f"the horizon T must be a positive number of seconds, got {T!r}") from e
@@ -191,7 +196,10 @@ def sphere_steering(robot: ShellWithTop, target_xy, T, heading=None) -> OCP:
     plane = _orthonormal_complement(gamma0) if np.linalg.norm(c) > 0 else np.zeros((3, 0))
     normal = None
     if heading is not None:
-        psi = np.asarray(heading, dtype=float)
+        try:
+            psi = np.asarray(heading, dtype=float)
+        except (TypeError, ValueError):
+            raise ProblemError(f"heading must be a finite angle in radians (a scalar), got {heading!r}") from None
         if psi.shape != () or not np.isfinite(psi):
             raise ProblemError(f"heading must be a finite angle in radians (a scalar), got {heading!r}")
         normal = host_array([-np.sin(psi), np.cos(psi)])
@@ -289,12 +297,15 @@ def linear_guess(ocp: OCP, param, rcond=1e-10, multipliers=False):
     linearized constraints (lam by least squares: the linearization has dependent
     rows, e.g. the vertical angular momentum is conserved to first order).
     """
+    check_ocp(ocp, "linear_guess")
     if not isinstance(ocp.system, ShellWithTop):
         raise ProblemError("linear_guess linearizes sphere_steering problems (ShellWithTop states)")
-    if param.dim != ocp.system.control_dim:
-        raise ProblemError(f"the parametrization has {param.dim} inputs, the robot takes 3 torques")
-    ts = jnp.asarray(param.sample_times())
-    us, lam = _linear_control(ocp, ts, jnp.asarray(rcond, float))
+    check_parametrization(param, ocp, "linear_guess")
+    with as_problem_error():
+        rcond = V.positive("rcond", rcond, owner="linear_guess", shape=(), as_float=True,
+                           what="relative cutoff of small singular values")
+    ts = host_array(param.sample_times())
+    us, lam = _linear_control(ocp, ts, host_array(rcond))
     p = fit_samples(param, ts, us)
     return (p, -2.0 * lam) if multipliers else p
 

@@ -34,7 +34,9 @@ import numpy as np
 
 from nhjax.scenes import ShellWithTop
 
-from ..problem import OCP, ProblemError, host_array
+from nhjax import _validate as V
+
+from ..problem import OCP, ProblemError, as_problem_error, host_array
 from .steering import sphere_steering_reduced
 
 __all__ = ["FigureEight", "TrackingCost", "shell_push", "sphere_tracking"]
@@ -78,9 +80,17 @@ def sphere_tracking(robot: ShellWithTop, *, horizon=1.0, amplitude=0.5, period=2
     torques bounded by |tau_i| <= ``bound`` [N m], horizon ``horizon`` [s]."""
     if not isinstance(robot, ShellWithTop):
         raise ProblemError(f"robot must be an nhjax.scenes.ShellWithTop, got {type(robot).__name__}")
-    for name, v in (("amplitude", amplitude), ("period", period), ("bound", bound), ("horizon", horizon)):
-        if not (np.isfinite(v) and v > 0):
-            raise ProblemError(f"sphere_tracking: {name} must be positive and finite, got {v!r}")
+    owner = "sphere_tracking"
+    with as_problem_error():
+        horizon = V.duration("horizon", horizon, owner=owner)
+        for name, v, what in (("amplitude", amplitude, "amplitude A of the figure eight [m]"),
+                              ("period", period, "time of one lap of the figure eight [s]"),
+                              ("bound", bound, "torque bound [N m]")):
+            V.positive(name, v, owner=owner, shape=(), what=what)
+        for name, v in (("position_weight", position_weight), ("swing_weight", swing_weight),
+                        ("effort_weight", effort_weight)):
+            V.positive(name, v, allow_zero=True, owner=owner, shape=(), what="weight of the running cost")
+        centre = np.asarray(V.vector("centre", centre, 2, owner=owner, what="centre of the figure eight (x, y) [m]"))
     base = sphere_steering_reduced(robot, (0.0, 0.0), horizon)
     ref = FigureEight(host_array(amplitude), host_array(period), host_array(np.asarray(centre, float)))
     cost = TrackingCost(ref, host_array(position_weight), host_array(swing_weight), host_array(effort_weight))
@@ -90,7 +100,12 @@ def sphere_tracking(robot: ShellWithTop, *, horizon=1.0, amplitude=0.5, period=2
 def shell_push(robot: ShellWithTop, dv) -> np.ndarray:
     """The state increment (17,) of ``ReducedSteering`` for a push that changes the
     shell centre's velocity by dv = (dv_x, dv_y) [m/s] (top axes, the top hanging)."""
-    dv3 = np.array([*np.asarray(dv, float), 0.0])
+    if not isinstance(robot, ShellWithTop):
+        raise ProblemError(f"shell_push: robot must be an nhjax.scenes.ShellWithTop, got {type(robot).__name__}")
+    with as_problem_error():
+        dv = np.asarray(V.vector("dv", dv, 2, owner="shell_push", what="change of the shell centre's velocity "
+                                                                        "(dv_x, dv_y) [m/s]"))
+    dv3 = np.array([*dv, 0.0])
     inc = np.zeros(17)
     inc[3:6] = np.cross([0.0, 0.0, 1.0], dv3) / float(robot.Rs)
     return inc

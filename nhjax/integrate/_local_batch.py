@@ -48,6 +48,7 @@ import numpy as np
 
 from .._validate import (
     as_state,
+    axes_dict,
     check_control,
     check_memory,
     check_saveat,
@@ -59,6 +60,7 @@ from .._validate import (
     save_times_count,
     solver_settings,
     time_span,
+    to_device,
 )
 from .. import _programs
 from ..errors import ParameterError, StateError
@@ -374,11 +376,7 @@ def simulate_batch_local(
     solver_settings(rtol=rtol, atol=atol, dt0=dt0, max_steps=max_steps, constraint_tol=constraint_tol, owner=owner)
     t0, t1 = time_span(t0, t1, owner=owner)
     check_saveat(saveat, t0, t1, owner=owner)
-    axes_d = {"x0": 0} if in_axes is None else dict(in_axes)
-    unknown = set(axes_d) - {"system", "x0", "control"}
-    if unknown:
-        raise ParameterError(f"{owner}: in_axes keys must be among 'system', 'x0', 'control'; got "
-                             f"{sorted(unknown)}", "in_axes", in_axes)
+    axes_d = axes_dict(in_axes, ("system", "x0", "control"), owner=owner, default={"x0": 0})
     for k, v in axes_d.items():
         if v not in (0, None):
             raise ParameterError(f"{owner}: in_axes['{k}'] must be 0 (batched along axis 0) or None (shared), "
@@ -405,7 +403,7 @@ def simulate_batch_local(
         # state component (a third more time per step on the cat), so it is tracked by
         # default only when the system reports no invariant and no constraint of its own
         track_work = (ex_ctrl is not None and _defines_power(ex_sys)
-                      and not _reports_accuracy(ex_sys, jtu.tree_map(jnp.asarray, ex_x0), jnp.asarray(t0, float)))
+                      and not _reports_accuracy(ex_sys, jtu.tree_map(to_device, ex_x0), to_device(t0)))
     # Values a user varies enter the compiled chunk as arrays (new values: no new trace);
     # numpy ones, since every eager jnp.asarray is a dispatch of its own.
     arr = lambda v: None if v is None else np.asarray(v, float)  # noqa: E731

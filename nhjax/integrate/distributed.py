@@ -37,6 +37,7 @@ import jax
 import jax.tree_util as jtu
 import numpy as np
 
+from .._validate import axes_dict
 from ..errors import ParameterError
 from ._batch_types import BatchError, BatchTrajectory
 from ._local_batch import simulate_batch_local
@@ -45,11 +46,7 @@ __all__ = ["simulate_batch_on_client"]
 
 
 def _axes(in_axes):
-    d = {"x0": 0} if in_axes is None else dict(in_axes)
-    unknown = set(d) - {"system", "x0", "control"}
-    if unknown:
-        raise ParameterError(f"simulate_batch_on_client: in_axes keys must be among 'system', 'x0', 'control'; "
-                             f"got {sorted(unknown)}", "in_axes", in_axes)
+    d = axes_dict(in_axes, ("system", "x0", "control"), owner="simulate_batch_on_client", default={"x0": 0})
     return d
 
 

@@ -104,7 +104,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
-from .._validate import (check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
+from .._validate import (axes_dict, check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
                          to_device)
 from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
 from ._batch_types import BatchError, MemberStatuses
@@ -1375,11 +1375,7 @@ class ImpactBatchTrajectory(MemberStatuses, ImpactTrajectory):
 def _batch_axes(system, x0, in_axes, owner):
     """(system axes pytree, x0 axis, batch size) from ``in_axes`` (see
     ``simulate_impacts_batch``), with x0's shape checked against the system's (q, q')."""
-    in_axes = dict(in_axes or {})
-    unknown = set(in_axes) - {"system", "x0"}
-    if unknown:
-        raise ParameterError(f"{owner}: in_axes keys must be among 'system', 'x0'; got {sorted(unknown)}",
-                             "in_axes", in_axes)
+    in_axes = axes_dict(in_axes, ("system", "x0"), owner=owner)
     x_axis = in_axes.get("x0", 0 if x0.ndim == 2 else None)
     if x_axis not in (0, None):
         raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis!r}", "in_axes", in_axes)
@@ -1630,7 +1626,7 @@ def simulate_batch_impacts(system, x0, t1, *, t0=0.0, control=None, in_axes=None
         raise ParameterError(f"{owner}: project=True is not supported for impact systems; persistent contacts "
                              "are projected by the event loop itself", "project", project)
     choice("on_guard", on_guard, ("raise", "stop"), owner=owner)
-    axes = {"x0": 0} if in_axes is None else dict(in_axes)
+    axes = axes_dict(in_axes, ("system", "x0", "control"), owner=owner, default={"x0": 0})
     opts = dict(impact_options, t0=t0, rtol=1e-10 if rtol is None else rtol, atol=1e-10 if atol is None else atol,
                 dt0=dt0, solver=solver)
     if max_steps is not None:

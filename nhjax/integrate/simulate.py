@@ -868,7 +868,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
             # inputs, when tracked, stays out of the error norm: the steps (and so the
             # states) are those of the same solve without it.
             stepsize_controller = diffrax.PIDController(
-                rtol=jnp.asarray(rtol, float), atol=jnp.asarray(atol, float), jump_ts=jump_ts,
+                rtol=to_device(rtol), atol=to_device(atol), jump_ts=jump_ts,
                 norm=(_flat_state_norm if flat_work else _state_norm) if track_work else optx.rms_norm,
             )
         else:
