@@ -118,9 +118,9 @@ class Parametrization(eqx.Module):
             raise ProblemError(f"{owner}: u_fn(t) must return the {self.dim} inputs, shape ({self.dim},), got "
                                f"{getattr(out, 'shape', type(out).__name__)}")
         ts = self.sample_times()
-        # (one program for the samples: the user's function run eagerly under vmap would be a
-        # program per operation, each compiled or looked up in every new process)
-        us = np.asarray(jax.jit(jax.vmap(u_fn))(jax.device_put(ts)), float)
+        # (the user's function runs eagerly: a jit of it would compile again for every new
+        # function object, such as a lambda written in the call)
+        us = np.asarray(jax.vmap(u_fn)(jax.device_put(ts)), float)
         bad = ~np.all(np.isfinite(us), axis=1)
         if bad.any():
             raise ProblemError(f"{owner}: u_fn(t) returned NaN or inf at t = {float(ts[bad][0]):g} s (and "
