@@ -62,7 +62,7 @@ def _loop_inputs(owner, chain, phi0, direction, radius=None, orientation=None):
 def _phi0(chain, phi0, owner):
     """Joint angles at the start [rad] (k,), default 0, finite."""
     if phi0 is None:
-        return jnp.zeros(chain.k)
+        return V.to_device(np.zeros(chain.k))
     return V.vector("phi0", phi0, chain.k, owner=owner, what="joint angles at the start and end [rad]")
 
 
