@@ -71,10 +71,10 @@ def nan_errors(mode: str = "nan"):
 
 
 def host_array(x):
-    """A concrete number or array as a float64 jax array, handed over from numpy:
-    ``jnp.asarray`` on a Python number (or on an array without a dtype) runs an eager
-    program, one more to lower in every new process."""
-    return jnp.asarray(np.asarray(x), float)
+    """A concrete number or array as a float64 jax array, handed over from numpy
+    (``nhjax._args.to_device``): ``jnp.asarray`` on a Python number (or on an array
+    without a dtype) runs an eager program, one more to lower in every new process."""
+    return V.to_device(x)
 
 
 def compiled(fn=None, *, quick: bool = False, errors: str = "nan"):
