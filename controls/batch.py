@@ -189,9 +189,13 @@ def _first_type_difference(a, b, path=""):
 
 
 def _first_static_difference(a, b) -> str:
+    """Where a and b (of equal leaves) first differ in a static setting: the field
+    whose subtree differs, down to the static field itself (its two values)."""
     if dataclasses.is_dataclass(a) and type(a) is type(b):
         for f in dataclasses.fields(a):
             va, vb = getattr(a, f.name, None), getattr(b, f.name, None)
+            if f.metadata.get("static", False) and not _same(va, vb):
+                return f"{type(a).__name__}.{f.name}: {va!r} against {vb!r}"
             if jtu.tree_structure(va) != jtu.tree_structure(vb):
                 inner = _first_static_difference(va, vb)
                 return f"{type(a).__name__}.{f.name}" + (f" > {inner}" if inner else "")

@@ -1146,6 +1146,9 @@ def closed_loop(mpc: MPC, plant, x0, periods, *, t0=0.0, u_guess=None, pushes=No
 
     Returns a ``ClosedLoop``."""
     owner = "closed_loop"
+    if not isinstance(timing, (bool, np.bool_)):
+        raise MPCError(f"{owner}: timing must be True (one compiled call per period, each timed) or False (one "
+                       f"compiled loop), got {timing!r}")
     periods, plant_substeps = _setup(mpc, plant, periods, plant_substeps, owner, measured=measure is not None)
     t0 = _start_time(t0, owner)
     n, m = mpc.ocp.x0.shape[0], mpc.ocp.system.control_dim

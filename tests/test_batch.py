@@ -119,6 +119,9 @@ def test_split_batch_on_two_workers_equals_one_chunk():
         nhjax.simulate_batch(cat, X.at[457, 2].set(jnp.nan), 3.0, workers=2, **kw)
 
 
+@pytest.mark.slow(reason="compiles vmapped diffeqsolve besides the lock-step batch (~22 s on an empty cache); "
+                         "the default run checks lock-step members against their own simulate() in "
+                         "test_refilled_lanes_give_each_member_its_own_solve[8-times]; make test-all")
 def test_lockstep_equals_vmapped_diffrax_and_saves_up_to_a_guard():
     """Two independent batch paths agree member by member: the lock-step integrator and
     vmapped diffeqsolve (taken when an adjoint is given), with uneven save times and a

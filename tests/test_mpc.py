@@ -737,6 +737,9 @@ def test_loop_arguments_of_the_wrong_kind_get_named_errors():
                       (np.zeros(2), "t0 must be a scalar")):
         with pytest.raises(MPCError, match=f"closed_loop: {words}"):
             closed_loop(mpc, CAT, X0, 2, t0=t0)
+    for timing in ("yes", 1, None):
+        with pytest.raises(MPCError, match="closed_loop: timing must be True .* or False"):
+            closed_loop(mpc, CAT, X0, 2, timing=timing)
     with pytest.raises(MPCError, match="closed_loop_batch: t0 must be finite"):
         closed_loop_batch(mpc, CAT, np.array([X0, X0]), 2, t0=np.inf)
     with pytest.raises(MPCError, match="MPC.init: t0 must be finite"):
