@@ -37,6 +37,7 @@ from .errors import (  # noqa: E402
     RegularityError,
     ResourceError,
     StateError,
+    SystemKindError,
     TimeSpanError,
 )
 from .integrate import (  # noqa: E402
@@ -78,6 +79,7 @@ __all__ = [
     "ProjectionError",
     "ResourceError",
     "StateError",
+    "SystemKindError",
     "TimeSpanError",
     "PiecewiseConstant",
     "PiecewiseLinear",

@@ -23,6 +23,8 @@ errors with the same words, without the values):
 * ``BoundaryError``: a moving boundary (a wall, a circle) that degenerates within the
   time span (a circle's radius reaching 0);
 * ``ControlError``: a control missing, not callable, of the wrong shape or NaN;
+* ``SystemKindError``: a system or solver of a kind the path does not take (impacts on
+  a system without one-sided constraints, a solver that would leave the group);
 * ``TimeSpanError``: t0, t1 or the saved times empty, reversed or not finite;
 * ``ResourceError``: a request whose memory would exceed what is available;
 * ``ProblemError``: an optimal-control problem that cannot be posed or solved as
@@ -46,6 +48,7 @@ __all__ = [
     "RegularityError",
     "ResourceError",
     "StateError",
+    "SystemKindError",
     "TimeSpanError",
 ]
 
@@ -132,6 +135,13 @@ class ProjectionError(NhjaxError, ValueError):
 class ControlError(NhjaxError, ValueError, TypeError):
     """A control is missing where the system needs one, given where it takes none, not
     callable, of the wrong shape, or not finite."""
+
+
+class SystemKindError(NhjaxError, TypeError):
+    """A system or solver of a kind the called path does not take: ``simulate_impacts``
+    (and its batch) on a system that declares no one-sided constraints or is not a
+    ``ConstrainedLagrangian``; a solver that is not a Lie-group one on group-valued
+    states; ``DiscreteAdjoint`` with an implicit solver. A ``TypeError`` too."""
 
 
 class TimeSpanError(NhjaxError, ValueError):

@@ -288,7 +288,7 @@ def test_bad_use_is_named():
     x0 = cat.initial_state(0.8)
     with pytest.raises(ValueError, match="jacobians"):
         nhjax.DiscreteAdjoint(jacobians="sideways")
-    with pytest.raises(TypeError, match="explicit"):
+    with pytest.raises(nhjax.SystemKindError, match="explicit"):
         nhjax.simulate(cat, x0, 1.0, solver=diffrax.Kvaerno5(), adjoint=nhjax.DiscreteAdjoint())
     # the step budget it records is max_steps: exhausting it says so
     with pytest.raises(nhjax.IntegrationError, match="max_steps=20 exhausted"):

@@ -281,8 +281,13 @@ def test_bad_input_is_named():
         nhjax.simulate_impacts(s, jnp.array([1.0, 0.0, 0.0]), 1.0)
     with pytest.raises(ValueError, match="on_max_impacts"):
         nhjax.simulate_impacts(s, jnp.array([1.0, 0.0]), 1.0, on_max_impacts="ignore")
-    with pytest.raises(TypeError, match="unilateral_constraints"):
+    with pytest.raises(nhjax.SystemKindError, match="unilateral_constraints"):
         nhjax.simulate_impacts(Lagrangian(1, T=lambda q, qd: 0.5 * qd @ qd), jnp.array([1.0, 0.0]), 1.0)
+    cat = nhjax.scenes.FallingCat()  # not a ConstrainedLagrangian: no contact multipliers to form
+    for run in (lambda: nhjax.simulate_impacts(cat, cat.initial_state(0.8), 1.0),
+                lambda: nhjax.simulate_impacts_batch(cat, jnp.stack([cat.initial_state(0.8)] * 2), 1.0)):
+        with pytest.raises(nhjax.SystemKindError, match="needs a ConstrainedLagrangian .* got FallingCat"):
+            run()
     with pytest.raises(ValueError, match="t1"):
         nhjax.simulate_impacts(s, jnp.array([1.0, 0.0]), 0.0)
 

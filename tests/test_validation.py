@@ -31,6 +31,7 @@ def test_errors_are_named_and_keep_builtin_classes():
                 E.ProjectionError, E.TimeSpanError, E.ProblemError):
         assert issubclass(cls, E.NhjaxError) and issubclass(cls, ValueError)
     assert issubclass(E.ControlError, ValueError) and issubclass(E.ControlError, TypeError)
+    assert issubclass(E.SystemKindError, E.NhjaxError) and issubclass(E.SystemKindError, TypeError)
     assert issubclass(E.ResourceError, MemoryError)
     assert controls.ProblemError is E.ProblemError
 

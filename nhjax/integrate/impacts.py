@@ -106,7 +106,8 @@ import numpy as np
 from .. import _primitive, _programs
 from .._validate import (axes_dict, check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
                          to_device)
-from ..errors import BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError
+from ..errors import (BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError,
+                      SystemKindError)
 from ._batch_types import BatchError, MemberStatuses
 from .lockstep import lazy_cond
 from .simulate import _save_times
@@ -236,7 +237,7 @@ class ImpactTrajectory(eqx.Module):
 
 def _num_contacts(system, t0, x0):
     if not hasattr(system, "unilateral_constraints"):
-        raise TypeError(
+        raise SystemKindError(
             f"{type(system).__name__} declares no one-sided constraints: define "
             "unilateral_constraints(t, q) -> gaps (admissible where >= 0), or wrap it: "
             "nhjax.mechanics.WithContacts(system, psi, restitution)"
@@ -1121,7 +1122,7 @@ def simulate_impacts(
     x0 = _as_states(x0, owner, jnp)
     n = getattr(system, "n", None)
     if n is None or not hasattr(system, "dynamics_terms"):
-        raise TypeError(
+        raise SystemKindError(
             f"simulate_impacts needs a ConstrainedLagrangian (mass matrix, permanent constraints "
             f"and contact multipliers by autodiff), got {type(system).__name__}"
         )
@@ -1381,7 +1382,7 @@ def _batch_axes(system, x0, in_axes, owner):
         raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis!r}", "in_axes", in_axes)
     n = getattr(system, "n", None)
     if n is None or not hasattr(system, "dynamics_terms"):
-        raise TypeError(f"{owner} needs a ConstrainedLagrangian (mass matrix, permanent constraints and contact "
+        raise SystemKindError(f"{owner} needs a ConstrainedLagrangian (mass matrix, permanent constraints and contact "
                         f"multipliers by autodiff), got {type(system).__name__}")
     want = (2 * n,) if x_axis is None else (x0.shape[0] if x0.ndim else 0, 2 * n)
     if x0.shape != want or (x_axis == 0 and x0.ndim != 2):

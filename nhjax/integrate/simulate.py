@@ -55,6 +55,7 @@ from ..errors import (
     ChartSingularityError,
     IntegrationError,
     ParameterError,
+    SystemKindError,
     TimeSpanError,
 )
 from ..lie.spaces import Euclidean, is_space
@@ -854,7 +855,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
             first_stage_in_scan=single,
         )
     elif not euclid and not isinstance(solver, _AbstractRKMK):
-        raise TypeError(
+        raise SystemKindError(
             f"{type(system).__name__} has group-valued state parts; "
             f"{type(solver).__name__} would integrate them in ambient coordinates and "
             "drift off the group. Use nhjax.RKMK45() or nhjax.RKMK87() (adaptive) or nhjax.RKMK4() (fixed step)."
@@ -883,7 +884,7 @@ def _configure(system, control, x0, t0, t1, guard_names, *, saveat, solver, rtol
         if max_steps is None:
             max_steps = adjoint.max_steps
         if not _is_explicit(solver):
-            raise TypeError(
+            raise SystemKindError(
                 f"DiscreteAdjoint differentiates explicit Runge-Kutta steps; {type(solver).__name__} "
                 "is not one (use diffrax.RecursiveCheckpointAdjoint())"
             )
