@@ -235,6 +235,16 @@ class ImpactTrajectory(eqx.Module):
         return "\n".join(lines)
 
 
+def _lagrangian_size(system, owner):
+    """The number n of coordinates of a system the impact solves take (the Lagrange
+    engine's: mass matrix, permanent constraints and contact multipliers by autodiff)."""
+    n = getattr(system, "n", None)
+    if n is None or not hasattr(system, "dynamics_terms"):
+        raise SystemKindError(f"{owner} needs a ConstrainedLagrangian (mass matrix, permanent constraints and contact "
+                              f"multipliers by autodiff), got {type(system).__name__}")
+    return n
+
+
 def _num_contacts(system, t0, x0):
     if not hasattr(system, "unilateral_constraints"):
         raise SystemKindError(
@@ -1120,12 +1130,7 @@ def simulate_impacts(
     t0, t1 = time_span(t0, t1, owner=owner)
     system = _with_contacts(system, unilateral, restitution)
     x0 = _as_states(x0, owner, jnp)
-    n = getattr(system, "n", None)
-    if n is None or not hasattr(system, "dynamics_terms"):
-        raise SystemKindError(
-            f"simulate_impacts needs a ConstrainedLagrangian (mass matrix, permanent constraints "
-            f"and contact multipliers by autodiff), got {type(system).__name__}"
-        )
+    n = _lagrangian_size(system, owner)
     if x0.shape != (2 * n,):
         raise StateError(f"{owner}: x0 has shape {x0.shape}; {type(system).__name__} expects (q, q') of shape "
                          f"({2 * n},): pass the positions and then the velocities", "x0")
@@ -1380,10 +1385,7 @@ def _batch_axes(system, x0, in_axes, owner):
     x_axis = in_axes.get("x0", 0 if x0.ndim == 2 else None)
     if x_axis not in (0, None):
         raise ParameterError(f"{owner}: in_axes['x0'] must be 0 or None, got {x_axis!r}", "in_axes", in_axes)
-    n = getattr(system, "n", None)
-    if n is None or not hasattr(system, "dynamics_terms"):
-        raise SystemKindError(f"{owner} needs a ConstrainedLagrangian (mass matrix, permanent constraints and contact "
-                        f"multipliers by autodiff), got {type(system).__name__}")
+    n = _lagrangian_size(system, owner)
     want = (2 * n,) if x_axis is None else (x0.shape[0] if x0.ndim else 0, 2 * n)
     if x0.shape != want or (x_axis == 0 and x0.ndim != 2):
         per = f"({2 * n},) shared by every member" if x_axis is None else f"(members, {2 * n}), one row per member"
