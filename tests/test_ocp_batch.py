@@ -250,8 +250,12 @@ def test_batch_arguments_of_the_wrong_kind_are_named():
                 solve(bad)
     with pytest.raises(controls.ProblemError, match="p0_guess must be a real number"):
         controls.solve_pontryagin_batch(ocps, "abc", progress=False)
-    with pytest.raises(controls.ProblemError, match="nu_guess must be a real number"):
+    with pytest.raises(controls.ProblemError, match=r"nu_guess must have shape \(3,\).*\(2, 3\) \(one row per "
+                       r"member\); got a list of rows of shapes \(3,\), \(2,\)"):
         controls.solve_pontryagin_batch(ocps, np.zeros(3), [[1.0, 2.0, 3.0], [1.0, 2.0]], progress=False)
+    with pytest.raises(controls.ProblemError, match=r"solve_direct_batch: guess must .* got a list of rows of "
+                       r"shapes \(10,\), \(3,\)"):
+        controls.solve_direct_batch(ocps, controls.Chebyshev(4, T, 2), [np.zeros(10), np.zeros(3)], progress=False)
     with pytest.raises(controls.ProblemError, match="guess must be a real number"):
         controls.solve_direct_batch(ocps, controls.Chebyshev(4, T, 2), "g", progress=False)
     for grid in ("2", (2.7,), (0,)):

@@ -181,6 +181,31 @@ def test_free_winding_hard_starts_reach_the_mirror_optima(chart_cat):
     assert r.indirect.converged and r.cost_agreement < 1e-8
 
 
+def test_free_winding_start_windings_are_whole_turns_named_before_any_solve(chart_cat):
+    """start_windings names the starting loops by whole turns of chi: an empty sequence,
+    a half turn, a string or a number are refused by name before anything is traced."""
+    cat, th0, T = chart_cat
+    smooth = FallingCatSmooth(cat.I1, cat.lam, cat.B)
+    for bad, words in (((), "start_windings is empty"), ((1, 0.5), r"start_windings\[1\] must be an integer"),
+                       ("10", "start_windings must be a sequence of integers"),
+                       (1, "start_windings must be a sequence of integers")):
+        with pytest.raises(controls.ProblemError, match=f"^somersault_free_winding: {words}"):
+            somersault_free_winding(smooth, th0, -np.pi, T, start_windings=bad, progress=False)
+
+
+@pytest.mark.slow(reason="compiles the smooth cat's direct method; the default run checks start_windings by name")
+def test_free_winding_with_no_converged_start_names_every_start(chart_cat):
+    """When no start converges (one SQP iteration allowed) the error is the problem's,
+    with each start's winding, iterations and violation, instead of a bare RuntimeError."""
+    cat, th0, T = chart_cat
+    smooth = FallingCatSmooth(cat.I1, cat.lam, cat.B)
+    with pytest.raises(controls.ProblemError,
+                       match=r"no start converged \(winding \+1: 1 iterations, violation .*; winding \+0: 1 "
+                             r"iterations, violation .*\): try other start_windings"):
+        somersault_free_winding(smooth, th0, -np.pi, T, start_windings=(1, 0), polish=False, max_inner=1,
+                                progress=False)
+
+
 def test_torque_loop_guess_turns_by_its_holonomy():
     """The guess's torques (inverse dynamics of a fixed-theta twist from rest to rest)
     reproduce that motion: rest at the end, chi advanced by 2 pi, psi by -2 pi f."""

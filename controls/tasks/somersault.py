@@ -239,12 +239,16 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
     that ``pmp_residual`` recovers from the direct optimum, and the two costs are
     compared. Every start solves the same problem structure (only the fiber target and
     the guess differ, both arrays), so the direct method compiles once for all starts.
+    start_windings : the starting loops, by whole turns of the twist chi (integers, at
+        least one). No start converging raises ``ProblemError`` with each start's
+        iterations and violation.
     n_check : saved points of each start's re-simulation, on which the winding and the
         smallest theta are measured (the default, pmp_residual's n_points, lets the
         check of the winner reuse that simulation's compiled program).
     progress : one progress line per start (and one for the polish); False: none.
     """
     t_start = time.perf_counter()
+    start_windings = _start_windings(start_windings)
     param = Chebyshev(10, T, 2) if param is None else param
     # every program the task needs is traced first (the problems of all starts share one
     # structure; only the fiber target differs), and each compiled, or loaded from the
@@ -282,7 +286,11 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
         if d.converged and (best is None or d.cost < best.cost):
             best, best_ocp, best_info = d, ocp, info
     if best is None:
-        raise RuntimeError(f"no start converged: {starts}")
+        tried = "; ".join(f"winding {s['start_winding']:+d}: {s['iterations']} iterations, violation "
+                          f"{s['violation']:.1e}" for s in starts)
+        raise ProblemError(
+            f"somersault_free_winding: no start converged ({tried}): try other start_windings, a longer T, "
+            f"or more iterations (max_iter=...)")
     ind, agree, stat = None, float("nan"), float("nan")
     res = pmp_residual(best_ocp, best.control)
     stat = res["stationarity"]
@@ -294,6 +302,21 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
                              min_theta=best_info["min_theta"], starts=starts, indirect=ind,
                              cost_agreement=agree, stationarity=stat,
                              seconds=time.perf_counter() - t_start)
+
+
+def _start_windings(start_windings):
+    """``start_windings`` as a tuple of ints (at least one): each names a starting loop,
+    which winds the twist chi that many whole turns."""
+    owner = "somersault_free_winding"
+    if isinstance(start_windings, (str, bytes)) or not np.iterable(start_windings):
+        raise ProblemError(f"{owner}: start_windings must be a sequence of integers (the chi windings of the "
+                           f"starting loops, e.g. (1, 0, -1)), got {start_windings!r}")
+    with as_problem_error():
+        windings = tuple(V.integer(f"start_windings[{i}]", k, owner=owner, what="whole turns of the twist chi")
+                         for i, k in enumerate(start_windings))
+    if not windings:
+        raise ProblemError(f"{owner}: start_windings is empty: name at least one starting loop, e.g. (1, 0, -1)")
+    return windings
 
 
 def torque_loop_guess(cat: FallingCat, param, theta0, T, windings=1):
