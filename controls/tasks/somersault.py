@@ -290,7 +290,7 @@ def somersault_free_winding(cat: FallingCatSmooth, theta0, turn, T, *, param=Non
                           f"{s['violation']:.1e}" for s in starts)
         raise ProblemError(
             f"somersault_free_winding: no start converged ({tried}): try other start_windings, a longer T, "
-            f"or more iterations (max_iter=...)")
+            f"or more iterations (max_inner=..., solve_direct's)")
     ind, agree, stat = None, float("nan"), float("nan")
     res = pmp_residual(best_ocp, best.control)
     stat = res["stationarity"]
