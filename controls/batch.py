@@ -333,19 +333,18 @@ def _screen(stacked, z0, owner):
 def _guesses(name, guess, B, size, owner):
     if guess is None:
         return np.zeros((B, size))
+    wanted = (f"{owner}: {name} must have shape ({size},) (the same for every member) or ({B}, {size}) "
+              f"(one row per member)")
     if isinstance(guess, (list, tuple)):  # one row per member, as a list: rows of one length
         shapes = [np.shape(g) for g in guess]
         if len(set(shapes)) > 1:
-            raise ProblemError(f"{owner}: {name} must have shape ({size},) (the same for every member) or "
-                               f"({B}, {size}) (one row per member); got a list of rows of shapes "
-                               f"{', '.join(str(s) for s in shapes)}")
+            raise ProblemError(f"{wanted}; got a list of rows of shapes {', '.join(str(s) for s in shapes)}")
     with as_problem_error():  # (real numbers; NaN/inf pass: such a member is flagged, not run)
         g = np.asarray(V._as_real(name, guess, owner, "starting guess"), float)
     if g.shape == (size,):
         return np.broadcast_to(g, (B, size)).copy()
     if g.shape != (B, size):
-        raise ProblemError(f"{owner}: {name} must have shape ({size},) (the same for every member) or "
-                           f"({B}, {size}) (one row per member), got {g.shape}")
+        raise ProblemError(f"{wanted}, got {g.shape}")
     return g
 
 
