@@ -182,6 +182,20 @@ def call():
     d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])), progress=False)
     p = controls.solve_pontryagin(ocp, *fixed_theta_costates(cat, th0, T), progress=False)
     return np.array([d.cost, p.cost])""",
+    # the same two solves with their programs prepared first (controls.prepare_*: traced at
+    # once, compiled side by side in the background), as docs/guides/optimal-control.md shows
+    "OC: chart somersault, the same with the polish prepared (prepare_direct_sqp, prepare_pontryagin)": """
+import jax.numpy as jnp, controls
+from controls.tasks import fixed_theta_costates, velocity_somersault_chart
+cat, th0, T = S.FallingCatKinematic(), 0.6, 2.0
+def call():
+    ocp = velocity_somersault_chart(cat, th0, -np.pi, T)
+    param = controls.Chebyshev(10, T, 2)
+    controls.prepare_direct_sqp(ocp, param)
+    controls.prepare_pontryagin(ocp)
+    d = controls.solve_direct(ocp, param, param.fit(lambda t: jnp.array([0.0, 2 * np.pi / T])), progress=False)
+    p = controls.solve_pontryagin(ocp, *fixed_theta_costates(cat, th0, T), progress=False)
+    return np.array([d.cost, p.cost])""",
     "OC: 64 chart somersaults, solve_pontryagin_batch": """
 import controls
 from controls.tasks import fixed_theta_costates, velocity_somersault_chart
