@@ -289,12 +289,19 @@ class Spec:
             avals = tuple(a if ax is None else a.update(shape=a.shape[:ax] + (size,) + a.shape[ax:])
                           for a, ax in zip(self.in_avals, axes))
 
-            def fn(*args):
-                def split(*a):
-                    out = self.fn(*a)
-                    n = self.unbatched(axes)  # known now: the trace just recorded it
-                    return out[:n], out[n:]
+            def split(*a):
+                out = self.fn(*a)
+                n = self.unbatched(axes)  # known now: the trace just recorded it
+                return out[:n], out[n:]
 
+            def fn(*args):
+                if size == 1:
+                    # a batch of one (jax.jacfwd or forward-mode reverse in one number):
+                    # the program itself on the squeezed inputs. Batching a solve's loop
+                    # takes longer to trace and compile than the loop (a while loop's
+                    # predicate and every branch become selects) and computes the same
+                    head, tail = split(*[a if ax is None else jnp.squeeze(a, ax) for a, ax in zip(args, axes)])
+                    return list(head) + [x[None] for x in tail]
                 head, tail = jax.vmap(split, in_axes=axes, out_axes=(None, 0))(*args) if self.primals else \
                     jax.vmap(split, in_axes=axes)(*args)
                 return list(head) + list(tail)

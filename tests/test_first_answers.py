@@ -217,3 +217,43 @@ def test_scenes_and_start_states_from_numbers_compile_no_eager_programs_and_equa
     q, qd = x[:n], x[n:2 * n]
     assert np.max(np.abs(ring.position_constraints(0.0, q))) < 1e-14
     assert np.max(np.abs(ring.velocity_constraints(0.0, q, qd))) < 1e-14
+
+
+def _newton_sqrt(a, x0):
+    """sqrt(a) by Newton's iteration in a while loop (stops on its own residual, as a
+    solve does), with a second output that depends on x0 only."""
+    def body(c):
+        x, k = c
+        return 0.5 * (x + a / x), k + 1
+
+    x, k = jax.lax.while_loop(lambda c: (jnp.abs(c[0] ** 2 - a) > 1e-14 * a) & (c[1] < 50), body, (x0, 0))
+    return {"root": x * jnp.ones(3), "iterations": k, "start": 2.0 * x0}
+
+
+def test_a_batch_of_one_runs_the_program_itself_with_the_batched_programs_answer(monkeypatch, tmp_path):
+    """jax.jacfwd in one number vmaps the stored JVP program over a basis of one vector;
+    that batch of one is the JVP program on the squeezed inputs, not the vmap of its
+    loop: jacfwd, vmap over one and over two members all equal the plain function's,
+    and d sqrt(a)/da = 1 / (2 sqrt(a)), a derivative the loop's tangents must carry."""
+    from nhjax import _primitive, _programs
+
+    monkeypatch.setattr(_programs, "directory", lambda: tmp_path)
+    monkeypatch.setattr(_programs, "_MEMORY", {})
+    monkeypatch.setattr(_primitive, "_SPECS", {})
+
+    def stored(a, x0):
+        return _primitive.call("newton-sqrt", _newton_sqrt, (a, x0))
+
+    a, x0 = jnp.asarray(2.0), jnp.asarray(1.0)
+    before = dict(_primitive.BOUND)
+    d = jax.jacfwd(lambda a: stored(a, x0)["root"])(a)
+    assert _primitive.BOUND["jvp"] > before["jvp"] and _primitive.BOUND["vmap"] > before["vmap"]
+    np.testing.assert_allclose(d, jax.jacfwd(lambda a: _newton_sqrt(a, x0)["root"])(a), rtol=1e-14)
+    np.testing.assert_allclose(d, np.full(3, 0.5 / np.sqrt(2.0)), rtol=1e-12)
+    for batch in (jnp.asarray([3.0]), jnp.asarray([3.0, 5.0])):
+        got = jax.vmap(stored, in_axes=(0, None))(batch, x0)
+        want = jax.vmap(_newton_sqrt, in_axes=(0, None))(batch, x0)
+        for key in want:
+            assert got[key].shape == want[key].shape, key
+            np.testing.assert_allclose(got[key], want[key], rtol=1e-15)
+    np.testing.assert_allclose(got["root"][:, 0], np.sqrt([3.0, 5.0]), rtol=1e-14)
