@@ -29,7 +29,7 @@ import pytest
 import controls
 from controls import MPC, MPCError, ProblemError, box_qp, closed_loop, closed_loop_batch
 from controls._qp import _spd_inverse, stage_qp
-from nhjax.mechanics import AbstractSystem
+from nhjax.mechanics import AbstractSystem, Lagrangian
 from controls.tasks.somersault import Effort
 from nhjax.scenes import FallingCat, FallingCatKinematic, ShellWithTop
 
@@ -247,6 +247,11 @@ def test_bad_input_gets_a_named_error_before_numerics():
         closed_loop(mpc, FallingCatKinematic(), X0, 3)
     with pytest.raises(MPCError, match="does not match the model"):
         closed_loop(mpc, ShellWithTop(), X0, 3)
+    # a plant whose vector field cannot take the model's state (no state names to compare)
+    oscillators = Lagrangian(2, T=lambda q, qd: 0.5 * qd @ qd, V=lambda q: q @ q, force=lambda t, q, qd, u: u,
+                             control_dim=2)
+    with pytest.raises(MPCError, match="vector field does not take the model's state of 5 numbers"):
+        closed_loop(mpc, oscillators, X0, 3)
     with pytest.raises(MPCError, match="NaN"):
         closed_loop(mpc, CAT, np.array([0.8, np.nan, 0, 0, 0]), 3)
     with pytest.raises(MPCError, match="finite"):
