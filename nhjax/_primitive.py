@@ -18,7 +18,8 @@ the function (a solve: seconds) again in every new process:
   two; outputs that get no cotangent (diagnostics nobody differentiates) are zero
   constants in the backward program, and a call whose outputs get none skips it;
 * ``jax.vmap`` (e.g. of the tangents of ``jax.jacfwd``, the cotangents of
-  ``jax.jacrev``): the program of ``jax.vmap`` of the function;
+  ``jax.jacrev``): the program of ``jax.vmap`` of the function (a batch of one, as
+  ``jax.jacfwd`` in one number makes: the function itself on the squeezed inputs);
 * inside ``jax.jit`` (reached through a derived program): the stored StableHLO module,
   which XLA inlines.
 
