@@ -252,9 +252,15 @@ def _num_contacts(system, t0, x0):
             "unilateral_constraints(t, q) -> gaps (admissible where >= 0), or wrap it: "
             "nhjax.mechanics.WithContacts(system, psi, restitution)"
         )
-    psi = jax.eval_shape(lambda t, x: jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n])),
-                         jax.ShapeDtypeStruct((), jnp.float64), x0)
-    return psi.shape[0]
+    return eqx.filter_eval_shape(_gaps, system, jax.ShapeDtypeStruct((), jnp.float64), x0).shape[0]
+
+
+@eqx.filter_jit
+def _gaps(system, t, x):
+    """The one-sided constraints' gaps at (t, x), for their number: jitted, so that a
+    system of a structure already seen (the next eager call's, with other values) is not
+    traced again, as a closure's abstract evaluation would be on every call."""
+    return jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n]))
 
 
 def _loop_options(system, t0, x0):
