@@ -772,14 +772,6 @@ def _checked_matrix(name, value, shape, owner):
     return a
 
 
-@eqx.filter_jit
-def _plant_rate(plant, x, u):
-    """The plant's vector field at t = 0, for its shape: jitted, so that a plant of a
-    structure already checked (the next closed loop's, with other parameter values) is
-    not traced again, as a closure's abstract evaluation would be on every call."""
-    return plant.vector_field(0.0, x, u)
-
-
 def _plant_checks(mpc, plant, owner, batched=False, measured=False):
     """The plant against the model (``batched``: its arrays carry a leading member axis;
     member 0 is checked; ``measured``: the plant has a state of its own, which
@@ -813,7 +805,7 @@ def _plant_checks(mpc, plant, owner, batched=False, measured=False):
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__} has "
                        f"state {names_p}, the model {type(model).__name__} {names_m}")
     try:
-        dx = eqx.filter_eval_shape(_plant_rate, plant, mpc.ocp.x0, jax.ShapeDtypeStruct((model.control_dim,), float))
+        dx = V.abstract_call(plant.vector_field, 0.0, mpc.ocp.x0, jax.ShapeDtypeStruct((model.control_dim,), float))
     except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
         raise MPCError(f"{owner}: the plant's state does not match the model's: {type(plant).__name__}'s vector "
                        f"field does not take the model's state of {n} numbers ({e})") from e
@@ -843,7 +835,7 @@ def _measured_plant(mpc, plant, x0, measure, owner):
         raise MPCError(f"{owner}: measure must return the model's state of {n} numbers, got "
                        f"{getattr(y, 'shape', type(y).__name__)}")
     try:
-        eqx.filter_eval_shape(_plant_rate, plant, x0, jax.ShapeDtypeStruct((m,), float))
+        V.abstract_call(plant.vector_field, 0.0, x0, jax.ShapeDtypeStruct((m,), float))
     except Exception as e:  # noqa: BLE001 - re-raised with the cause attached
         raise MPCError(f"{owner}: {type(plant).__name__}'s vector field does not take x0: {e}") from e
     return jtu.tree_map(host_array, x0)

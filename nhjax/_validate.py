@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import os
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
@@ -107,6 +108,21 @@ from ._args import (  # noqa: F401
     vector,
     _where,
 )
+
+@eqx.filter_jit
+def _applied(fn, *args):
+    return fn(*args)
+
+
+def abstract_call(fn, *args):
+    """``jax.eval_shape(fn, *args)`` (nothing runs), traced once per structure: ``fn`` a
+    function or a system's bound method (``plant.vector_field``: the system's arrays
+    are then arguments of the trace, not constants in it), the arrays in ``args`` (or
+    ``jax.ShapeDtypeStruct``s) arguments, everything else static. A closure over a system
+    would be traced again on every call, e.g. on each eager call with a new system of the
+    same kind."""
+    return eqx.filter_eval_shape(_applied, fn, *args)
+
 
 def _describe_spaces(spaces) -> str:
     def one(sp):

@@ -104,8 +104,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import _primitive, _programs
-from .._validate import (axes_dict, check_saveat, choice, first_failures, integer, positive, solver_settings, time_span,
-                         to_device)
+from .._validate import (abstract_call, axes_dict, check_saveat, choice, first_failures, integer, positive,
+                         solver_settings, time_span, to_device)
 from ..errors import (BoundaryError, ConstraintViolationError, IntegrationError, ParameterError, StateError,
                       SystemKindError)
 from ._batch_types import BatchError, MemberStatuses
@@ -252,15 +252,9 @@ def _num_contacts(system, t0, x0):
             "unilateral_constraints(t, q) -> gaps (admissible where >= 0), or wrap it: "
             "nhjax.mechanics.WithContacts(system, psi, restitution)"
         )
-    return eqx.filter_eval_shape(_gaps, system, jax.ShapeDtypeStruct((), jnp.float64), x0).shape[0]
-
-
-@eqx.filter_jit
-def _gaps(system, t, x):
-    """The one-sided constraints' gaps at (t, x), for their number: jitted, so that a
-    system of a structure already seen (the next eager call's, with other values) is not
-    traced again, as a closure's abstract evaluation would be on every call."""
-    return jnp.atleast_1d(system.unilateral_constraints(t, x[: system.n]))
+    gaps = abstract_call(system.unilateral_constraints, jax.ShapeDtypeStruct((), jnp.float64),
+                         jax.ShapeDtypeStruct((system.n,), x0.dtype))
+    return gaps.shape[0] if gaps.shape else 1  # (one gap as a scalar)
 
 
 def _loop_options(system, t0, x0):
