@@ -45,7 +45,6 @@ worth it for P up to ~100.
 
 from __future__ import annotations
 
-import os
 import time
 
 import diffrax
@@ -213,14 +212,11 @@ def _reduced_hessian(sh, z, g, Z, w, h, wait=True):
         # gradients from the forward sensitivities' Jacobian at each point, whose program
         # the solver has (k forward solves with P tangents instead of k vmapped reverse
         # passes: slower to run, nothing to trace or compile). The k solves are
-        # independent: two at a time where there are two cores (one program does not
-        # keep both busy)
+        # independent: two at a time (one program does not keep two cores busy)
         def gradient(zj):
             return np.asarray(_values_and_jacobian(sh, zj)[1]).T @ w
 
-        workers = 2 if (os.cpu_count() or 1) >= 2 else 1
-        G = np.stack(list(_programs._pool("run", workers).map(gradient, zs)) if workers > 1
-                     else [gradient(zj) for zj in zs])
+        G = np.stack(list(_programs._pool("run", 2).map(gradient, zs)))
     R = (G - g[None, :]) @ Z / h
     return 0.5 * (R + R.T)
 

@@ -111,7 +111,7 @@ def test_feasible_path_newton_simulates_loosely_first_and_lands_on_the_same_opti
 
 
 def test_feasible_path_newton_takes_full_steps_where_the_costs_scatter_more_than_they_decrease(
-        chart_cat, chart_optimum, monkeypatch):
+        chart_cat, monkeypatch):
     """Near the optimum a Newton step predicts a decrease of the cost (about the
     stationarity squared) below the scatter of the costs the line search compares (the
     simulations' accuracy, rtol relative; the leftover violation times the
